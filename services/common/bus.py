@@ -1,0 +1,387 @@
+"""The Zenoh bus: session from options, publish/subscribe/query helpers, liveliness.
+
+This is the only module that imports zenoh (1.x API). Everything else sees bytes and plain
+callbacks, so a service can be driven by an in-memory fake in unit tests.
+
+Pitfalls handled here (docs: ZENOH_NOTES.md): callbacks swallow exceptions, so every callback is
+wrapped and logs what it caught; queries are always finalised (``query.drop()`` in ``finally``);
+client mode gets a connect retry so a service may start before its router; sessions are closed
+in ``close()``/``with``; a ``get`` that times out or finds no responder raises a clear error.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import threading
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import zenoh
+
+log = logging.getLogger(__name__)
+
+MSGPACK = "application/msgpack"
+JSON = "application/json"
+MODES = ("peer", "client", "router")
+
+
+class BusError(RuntimeError):
+    """A bus operation failed; the message says which key and why."""
+
+
+class QueryTimeout(BusError):
+    """A ``get`` got no complete answer within its timeout."""
+
+
+class NoResponder(BusError):
+    """A ``get`` found no queryable on the key (is the service running and connected?)."""
+
+
+class QueryRejected(Exception):
+    """Raised by a query handler to answer with an error reply carrying this message."""
+
+
+@dataclass(frozen=True)
+class ZenohOptions:
+    """How to open a Zenoh session; spelled as in Zenoh's own examples.
+
+    ``config_file`` is a Zenoh JSON5 file; the other fields override it. ``lease_ms`` shortens
+    the link lease (outage detection); ``connect_timeout_ms`` bounds how long opening a client
+    waits for its router (-1 waits forever).
+    """
+
+    mode: str = "peer"
+    connect: tuple[str, ...] = ()
+    listen: tuple[str, ...] = ()
+    multicast_scouting: bool = True
+    config_file: str | None = None
+    lease_ms: int | None = None
+    connect_timeout_ms: int = 10000
+    shared_memory: bool | None = None
+
+    def __post_init__(self) -> None:
+        if self.mode not in MODES:
+            raise ValueError(f"zenoh mode {self.mode!r} is not one of {list(MODES)}")
+
+
+def add_zenoh_arguments(parser: argparse.ArgumentParser) -> None:
+    """Add ``-m -e -l --no-multicast-scouting -c`` (Zenoh's example spelling) to a parser."""
+    g = parser.add_argument_group("zenoh")
+    g.add_argument("-m", "--mode", choices=MODES, help="zenoh session mode (default peer)")
+    g.add_argument("-e", "--connect", action="append", metavar="ENDPOINT", default=None,
+                   help="endpoint to connect to, e.g. tcp/127.0.0.1:7447 (repeatable)")
+    g.add_argument("-l", "--listen", action="append", metavar="ENDPOINT", default=None,
+                   help="endpoint to listen on, e.g. unixsock-stream/tmp/z.sock (repeatable)")
+    g.add_argument("--no-multicast-scouting", action="store_true", default=None,
+                   help="disable multicast scouting (recommended outside a single laptop)")
+    g.add_argument("-c", "--zenoh-config", metavar="FILE",
+                   help="zenoh JSON5 config file (the ZENOH_CONFIG environment variable also works)")
+
+
+def options_from_args(args: argparse.Namespace, base: ZenohOptions | None = None) -> ZenohOptions:
+    """Resolve options: command line > environment (``ZENOH_*``) > ``base`` (config file)."""
+    o = base or ZenohOptions()
+    env = os.environ
+    if env.get("ZENOH_CONFIG"):
+        o = replace(o, config_file=env["ZENOH_CONFIG"])
+    if env.get("ZENOH_MODE"):
+        o = replace(o, mode=env["ZENOH_MODE"])
+    if env.get("ZENOH_CONNECT"):
+        o = replace(o, connect=tuple(env["ZENOH_CONNECT"].split(",")))
+    if env.get("ZENOH_LISTEN"):
+        o = replace(o, listen=tuple(env["ZENOH_LISTEN"].split(",")))
+    if getattr(args, "zenoh_config", None):
+        o = replace(o, config_file=args.zenoh_config)
+    if getattr(args, "mode", None):
+        o = replace(o, mode=args.mode)
+    if getattr(args, "connect", None):
+        o = replace(o, connect=tuple(args.connect))
+    if getattr(args, "listen", None):
+        o = replace(o, listen=tuple(args.listen))
+    if getattr(args, "no_multicast_scouting", None):
+        o = replace(o, multicast_scouting=False)
+    return o
+
+
+def zenoh_config(o: ZenohOptions) -> zenoh.Config:
+    """Build a ``zenoh.Config``: the JSON5 file (if any), then the explicit options on top."""
+    conf = zenoh.Config.from_file(o.config_file) if o.config_file else zenoh.Config()
+
+    def put(path: str, value: Any) -> None:
+        conf.insert_json5(path, json.dumps(value))
+
+    put("mode", o.mode)
+    if o.connect:
+        put("connect/endpoints", list(o.connect))
+    if o.listen:
+        put("listen/endpoints", list(o.listen))
+    if not o.multicast_scouting:
+        put("scouting/multicast/enabled", False)
+    if o.connect:
+        # Keep retrying the router instead of failing at once (ZENOH_NOTES pitfall 8).
+        put("connect/timeout_ms", {"client": o.connect_timeout_ms, "peer": -1, "router": -1})
+        put("connect/retry", {"period_init_ms": 200, "period_max_ms": 1000,
+                              "period_increase_factor": 2})
+    if o.lease_ms is not None:
+        put("transport/link/tx/lease", o.lease_ms)
+    if o.shared_memory is not None:
+        put("transport/shared_memory/enabled", o.shared_memory)
+    return conf
+
+
+Callback = Callable[[str, bytes], None]
+
+
+def _guarded(name: str, fn: Callable[..., None]) -> Callable[..., None]:
+    """Zenoh prints and swallows callback exceptions; log them through ``logging`` instead."""
+
+    def wrapper(*args: Any) -> None:
+        try:
+            fn(*args)
+        except Exception:
+            log.exception("callback for %s failed", name)
+
+    return wrapper
+
+
+@dataclass(frozen=True)
+class QueryRequest:
+    """What a queryable handler sees: the key, selector parameters and optional payload."""
+
+    key: str
+    parameters: dict[str, str]
+    payload: bytes | None
+
+
+@dataclass(frozen=True)
+class QueryAnswer:
+    payload: bytes
+    encoding: str = MSGPACK
+
+
+QueryHandler = Callable[[QueryRequest], QueryAnswer]
+
+
+class LatestSlot:
+    """Latest-only queue for camera frames: like ``RingChannel(1)``, but counts what it skips.
+
+    A newer sample replaces an unread one; ``skipped`` counts replaced samples so the consumer
+    can report its drops.
+    """
+
+    def __init__(self) -> None:
+        self._cond = threading.Condition()
+        self._item: tuple[str, bytes] | None = None
+        self.skipped = 0
+        self._closed = False
+
+    def push(self, key: str, payload: bytes) -> None:
+        with self._cond:
+            if self._item is not None:
+                self.skipped += 1
+            self._item = (key, payload)
+            self._cond.notify()
+
+    def take(self, timeout: float | None = None) -> tuple[str, bytes] | None:
+        """The newest unread sample, waiting up to ``timeout`` s; None on timeout or close."""
+        with self._cond:
+            if self._item is None and not self._closed:
+                self._cond.wait(timeout)
+            item, self._item = self._item, None
+            return item
+
+    def close(self) -> None:
+        with self._cond:
+            self._closed = True
+            self._cond.notify_all()
+
+
+@dataclass
+class _Declarations:
+    items: list[Any] = field(default_factory=list)
+
+
+class Bus:
+    """One Zenoh session and everything declared on it; close it (or use ``with``)."""
+
+    def __init__(self, options: ZenohOptions | None = None) -> None:
+        self.options = options or ZenohOptions()
+        try:
+            self.session = zenoh.open(zenoh_config(self.options))
+        except Exception as exc:
+            raise BusError(f"cannot open zenoh session ({self.options.mode}, connect="
+                           f"{list(self.options.connect)}, listen={list(self.options.listen)}): "
+                           f"{exc}") from exc
+        self._decl = _Declarations()
+        self._lock = threading.Lock()
+        self._publishers: dict[tuple[str, bool], Any] = {}
+
+    def __enter__(self) -> Bus:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """Undeclare everything, then close the session (idempotent)."""
+        with self._lock:
+            items, self._decl.items = self._decl.items, []
+            self._publishers.clear()
+        for item in reversed(items):
+            try:
+                item.undeclare()
+            except Exception:  # already gone with a closed session
+                log.debug("undeclare failed", exc_info=True)
+        if not self.session.is_closed():
+            self.session.close()
+
+    def _keep(self, item: Any) -> Any:
+        with self._lock:
+            self._decl.items.append(item)
+        return item
+
+    @property
+    def zid(self) -> str:
+        return str(self.session.zid())
+
+    # --- publish ---
+
+    def put(self, key: str, payload: bytes, *, frame: bool = False,
+            encoding: str = MSGPACK) -> None:
+        """Publish ``payload`` on ``key``.
+
+        State messages (``frame=False``) use congestion control BLOCK so none is lost; camera
+        frames use DROP, since only the newest frame matters (ZENOH_NOTES pitfall 11).
+        """
+        pub_key = (key, frame)
+        pub = self._publishers.get(pub_key)
+        if pub is None:
+            cc = zenoh.CongestionControl.DROP if frame else zenoh.CongestionControl.BLOCK
+            pub = self._keep(self.session.declare_publisher(
+                key, encoding=zenoh.Encoding(encoding), congestion_control=cc, express=not frame))
+            self._publishers[pub_key] = pub
+        pub.put(payload)
+
+    # --- subscribe ---
+
+    def subscribe(self, key: str, callback: Callback) -> Any:
+        """Call ``callback(key, payload)`` for every sample, in arrival order (FIFO).
+
+        Zenoh invokes callbacks of one subscriber sequentially; a slow callback applies
+        back-pressure rather than dropping state messages.
+        """
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            if sample.kind == zenoh.SampleKind.PUT:
+                callback(str(sample.key_expr), sample.payload.to_bytes())
+
+        return self._keep(self.session.declare_subscriber(key, _guarded(key, on_sample)))
+
+    def subscribe_latest(self, key: str) -> LatestSlot:
+        """Latest-only subscription (camera frames): read with ``slot.take(timeout)``."""
+        slot = LatestSlot()
+        self.subscribe(key, slot.push)
+        return slot
+
+    # --- query ---
+
+    def declare_queryable(self, key: str, handler: QueryHandler) -> Any:
+        """Answer queries on ``key`` with ``handler``; every query is finalised.
+
+        ``QueryRejected`` becomes an error reply with its message; any other exception is logged
+        and answered as ``internal error``.
+        """
+
+        def on_query(query: zenoh.Query) -> None:
+            try:
+                params = {k: v for k, v in _parameters(query.parameters).items()}
+                payload = query.payload.to_bytes() if query.payload is not None else None
+                request = QueryRequest(key=str(query.key_expr), parameters=params,
+                                       payload=payload)
+                try:
+                    answer = handler(request)
+                except QueryRejected as exc:
+                    query.reply_err(str(exc).encode())
+                    return
+                except Exception as exc:
+                    log.exception("queryable %s failed", key)
+                    query.reply_err(f"internal error: {exc}".encode())
+                    return
+                query.reply(key, answer.payload, encoding=zenoh.Encoding(answer.encoding))
+            finally:
+                query.drop()
+
+        return self._keep(self.session.declare_queryable(key, _guarded(key, on_query)))
+
+    def get(self, selector: str, payload: bytes | None = None, timeout: float = 2.0
+            ) -> list[tuple[str, bytes]]:
+        """Query ``selector`` and return ``[(key, payload), ...]`` of the successful replies.
+
+        Raises :class:`NoResponder` when nothing answers, :class:`QueryTimeout` when the timeout
+        passes, and :class:`BusError` with the remote message for an error reply.
+        """
+        replies = self.session.get(selector, payload=payload, timeout=timeout)
+        ok: list[tuple[str, bytes]] = []
+        errors: list[str] = []
+        for reply in replies:
+            if reply.ok is not None:
+                ok.append((str(reply.ok.key_expr), reply.ok.payload.to_bytes()))
+            else:
+                errors.append(reply.err.payload.to_string())
+        if ok:
+            return ok
+        if any(e.strip().lower() == "timeout" for e in errors):
+            raise QueryTimeout(f"get {selector!r}: no answer within {timeout:.1f} s")
+        if errors:
+            raise BusError(f"get {selector!r} failed: {'; '.join(errors)}")
+        raise NoResponder(f"get {selector!r}: nothing answers on this key (is the service "
+                          "running and connected to the same zenoh network?)")
+
+    # --- liveliness ---
+
+    def declare_token(self, key: str) -> Any:
+        """A liveliness token that exists while this session lives (or until undeclared)."""
+        return self._keep(self.session.liveliness().declare_token(key))
+
+    def alive(self, key_expr: str, timeout: float = 1.0) -> list[str]:
+        """Keys of the liveliness tokens currently matching ``key_expr``."""
+        replies = self.session.liveliness().get(key_expr, timeout=timeout)
+        return sorted(str(r.ok.key_expr) for r in replies if r.ok is not None)
+
+    def watch_liveliness(self, key_expr: str, callback: Callable[[str, bool], None],
+                         history: bool = True) -> Any:
+        """Call ``callback(key, alive)`` when a token matching ``key_expr`` appears or vanishes."""
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            callback(str(sample.key_expr), sample.kind == zenoh.SampleKind.PUT)
+
+        return self._keep(self.session.liveliness().declare_subscriber(
+            key_expr, _guarded(key_expr, on_sample), history=history))
+
+
+def _parameters(params: Any) -> dict[str, str]:
+    """Selector parameters as a plain dict (``zenoh.Parameters`` iterates as pairs)."""
+    try:
+        return {str(k): str(v) for k, v in params}
+    except TypeError:
+        text = str(params)
+        out: dict[str, str] = {}
+        for part in filter(None, text.split(";")):
+            k, _, v = part.partition("=")
+            out[k] = v
+        return out
+
+
+def run_router(options: ZenohOptions, stop: threading.Event) -> None:
+    """Run a Zenoh router in this process until ``stop`` is set (tests, small setups)."""
+    with Bus(replace(options, mode="router")):
+        stop.wait()
+
+
+def split_endpoints(values: Sequence[str] | None) -> tuple[str, ...]:
+    """Flatten comma-separated endpoint lists."""
+    return tuple(e for v in values or () for e in v.split(",") if e)

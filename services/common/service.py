@@ -1,0 +1,208 @@
+"""The small runner every handkse service uses.
+
+A service is one event loop: samples from its subscriptions and control calls (``reset``) are
+queued by the bus threads and handled one at a time by :meth:`Service.run`, so service logic
+needs no locks. The runner declares the liveliness token ``handkse/{rig}/alive/{service}`` and
+the ``stats`` and ``reset`` queryables, counts what it receives, publishes and rejects, and stops
+gracefully on SIGINT/SIGTERM. A bad message is counted in ``rejected[reason]`` and logged at
+most once per reason per second; it never stops the service.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import queue
+import signal
+import threading
+import time
+from collections import deque
+from collections.abc import Callable, Iterator
+from typing import Any, Protocol, TypeVar
+
+import numpy as np
+
+from services.common.bus import JSON, QueryAnswer, QueryRequest
+from services.common.keys import Keys
+from services.common.protocol import Ack, Message, ProtocolError, ServiceStats
+
+log = logging.getLogger(__name__)
+
+M = TypeVar("M", bound=Message)
+
+
+class BusLike(Protocol):
+    """What a service needs from the bus (``services.common.bus.Bus`` or a test fake)."""
+
+    def put(self, key: str, payload: bytes, *, frame: bool = False,
+            encoding: str = ...) -> None: ...
+
+    def subscribe(self, key: str, callback: Callable[[str, bytes], None]) -> Any: ...
+
+    def declare_queryable(self, key: str, handler: Callable[[Any], Any]) -> Any: ...
+
+    def declare_token(self, key: str) -> Any: ...
+
+
+class LatencyLog:
+    """Recent latencies of named stages (bounded), summarised as p50/p99 in milliseconds."""
+
+    def __init__(self, size: int = 2000) -> None:
+        self._samples: dict[str, deque[float]] = {}
+        self._size = size
+
+    def add(self, stage: str, seconds: float) -> None:
+        self._samples.setdefault(stage, deque(maxlen=self._size)).append(seconds * 1e3)
+
+    @contextlib.contextmanager
+    def measure(self, stage: str) -> Iterator[None]:
+        t0 = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.add(stage, time.perf_counter() - t0)
+
+    def summary(self) -> dict[str, dict[str, float]]:
+        out = {}
+        for stage, samples in self._samples.items():
+            if samples:
+                p50, p99 = np.percentile(np.fromiter(samples, float), [50, 99])
+                out[stage] = {"p50": float(p50), "p99": float(p99)}
+        return out
+
+
+class Service:
+    """Counters, control queryables and the event loop of one service process."""
+
+    def __init__(self, name: str, bus: BusLike, keys: Keys, queue_size: int = 10000) -> None:
+        self.name = name
+        self.bus = bus
+        self.keys = keys
+        self.started = time.monotonic()
+        self.received = 0
+        self.published = 0
+        self.dropped = 0
+        self.rejected: dict[str, int] = {}
+        self.latency = LatencyLog()
+        self._seq: dict[str, int] = {}
+        self._events: queue.Queue[tuple[Callable[..., None], tuple[Any, ...]]] = queue.Queue(
+            queue_size)
+        self._last_log: dict[str, float] = {}
+        self._reset_handlers: list[Callable[[], None]] = []
+        bus.declare_token(keys.alive(name))
+        bus.declare_queryable(keys.stats(name), self._answer_stats)
+        bus.declare_queryable(keys.reset(name), self._answer_reset)
+
+    # --- counting ---
+
+    def reject(self, reason: str, detail: str) -> None:
+        """Count a rejected input under ``reason``; log it at most once per second per reason."""
+        self.rejected[reason] = self.rejected.get(reason, 0) + 1
+        now = time.monotonic()
+        if now - self._last_log.get(reason, -1e9) >= 1.0:
+            self._last_log[reason] = now
+            log.warning("%s rejected input (%s, %d so far): %s", self.name, reason,
+                        self.rejected[reason], detail)
+
+    def next_seq(self, key: str) -> int:
+        seq = self._seq.get(key, 0)
+        self._seq[key] = seq + 1
+        return seq
+
+    def stats(self) -> ServiceStats:
+        return ServiceStats(service=self.name, uptime_s=time.monotonic() - self.started,
+                            received=self.received, published=self.published,
+                            dropped=self.dropped, rejected=dict(self.rejected),
+                            latency_ms=self.latency.summary())
+
+    # --- wiring ---
+
+    def publish(self, key: str, message: Message, *, frame: bool = False) -> None:
+        self.bus.put(key, message.to_msgpack(), frame=frame)
+        self.published += 1
+
+    def subscribe(self, key: str, message_type: type[M], handler: Callable[[M], None]) -> None:
+        """Decode every sample on ``key`` as ``message_type`` and hand it to ``handler`` in the loop."""
+
+        def handle(_key: str, payload: bytes) -> None:
+            self.received += 1
+            try:
+                message = message_type.from_msgpack(payload)
+            except ProtocolError as exc:
+                self.reject(exc.reason, str(exc))
+                return
+            handler(message)
+
+        self.bus.subscribe(key, lambda k, p: self._events.put((handle, (k, p))))
+
+    def on_reset(self, handler: Callable[[], None]) -> None:
+        """Run ``handler`` in the loop when the ``reset`` queryable is called."""
+        self._reset_handlers.append(handler)
+
+    def call_soon(self, fn: Callable[..., None], *args: Any) -> None:
+        """Run ``fn(*args)`` in the service loop."""
+        self._events.put((fn, args))
+
+    # --- queryables (run on bus threads; touch only thread-safe state) ---
+
+    def _answer_stats(self, request: QueryRequest) -> QueryAnswer:
+        stats = self.stats()
+        if request.parameters.get("format") == "json":
+            return QueryAnswer(json.dumps(stats.to_json_obj()).encode(), JSON)
+        return QueryAnswer(stats.to_msgpack())
+
+    def _answer_reset(self, request: QueryRequest) -> QueryAnswer:
+        done = threading.Event()
+        errors: list[str] = []
+
+        def do_reset() -> None:
+            try:
+                for handler in self._reset_handlers:
+                    handler()
+            except Exception as exc:  # reported to the caller, the service keeps running
+                log.exception("%s reset failed", self.name)
+                errors.append(str(exc))
+            finally:
+                done.set()
+
+        self.call_soon(do_reset)
+        if not done.wait(5.0):
+            ack = Ack(ok=False, message=f"{self.name}: reset did not complete within 5 s")
+        elif errors:
+            ack = Ack(ok=False, message=f"{self.name}: reset failed: {errors[0]}")
+        else:
+            ack = Ack(ok=True, message=f"{self.name} reset")
+        return QueryAnswer(ack.to_msgpack())
+
+    # --- loop ---
+
+    def run(self, stop: threading.Event, idle: Callable[[], None] | None = None,
+            idle_period_s: float = 0.1) -> None:
+        """Handle queued events until ``stop`` is set; ``idle`` runs about every ``idle_period_s``."""
+        next_idle = time.monotonic() + idle_period_s
+        while not stop.is_set():
+            try:
+                fn, args = self._events.get(timeout=idle_period_s)
+            except queue.Empty:
+                fn = None
+            if fn is not None:
+                try:
+                    fn(*args)
+                except Exception as exc:  # a bug for one input must not end the service
+                    self.reject("internal_error", repr(exc))
+                    log.exception("%s: handler failed", self.name)
+            if idle is not None and time.monotonic() >= next_idle:
+                next_idle = time.monotonic() + idle_period_s
+                idle()
+
+
+def stop_on_signals(stop: threading.Event) -> None:
+    """Set ``stop`` on SIGINT/SIGTERM (call from the main thread)."""
+
+    def handler(signum: int, _frame: object) -> None:
+        log.info("signal %d: stopping", signum)
+        stop.set()
+
+    signal.signal(signal.SIGINT, handler)
+    signal.signal(signal.SIGTERM, handler)

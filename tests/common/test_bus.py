@@ -1,0 +1,101 @@
+"""The bus across real processes: router, queryables, liveliness, bad input to a service."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import threading
+import time
+
+import pytest
+
+from services.common.bus import Bus, BusError, NoResponder, QueryAnswer, QueryRejected, QueryTimeout
+from services.common.keys import Keys
+from services.common.protocol import HandLandmarks, ServiceStats
+from tests.common import samples
+from tests.conftest import REPO, _env, wait_until
+
+KEYS = Keys("t1")
+
+
+def _start_echo(router: str, tmp_path) -> subprocess.Popen[str]:  # type: ignore[no-untyped-def]
+    log = open(tmp_path / "echo.log", "w")  # noqa: SIM115
+    return subprocess.Popen([sys.executable, "-m", "tests.common.echo_service", router, KEYS.rig],
+                            stdout=log, stderr=subprocess.STDOUT, env=_env(), cwd=REPO, text=True)
+
+
+def test_queryable_answers_and_errors(client_bus: Bus) -> None:
+    def handler(req):  # type: ignore[no-untyped-def]
+        if req.parameters.get("fail"):
+            raise QueryRejected("asked to fail")
+        return QueryAnswer(b"answer:" + (req.payload or b""))
+
+    client_bus.declare_queryable("t1/q", handler)
+    assert client_bus.get("t1/q", payload=b"x") == [("t1/q", b"answer:x")]
+    with pytest.raises(BusError, match="asked to fail"):
+        client_bus.get("t1/q?fail=1")
+
+
+def test_get_without_responder_is_a_clear_error(client_bus: Bus) -> None:
+    with pytest.raises(NoResponder, match="nothing answers"):
+        client_bus.get("t1/nobody", timeout=0.5)
+
+
+def test_get_timeout_is_a_clear_error(client_bus: Bus, router: str) -> None:
+    release = threading.Event()
+
+    def slow(_req):  # type: ignore[no-untyped-def]
+        release.wait(3)
+        return QueryAnswer(b"late")
+
+    with Bus(client_bus.options) as other:
+        other.declare_queryable("t1/slow", slow)
+        time.sleep(0.2)
+        t0 = time.monotonic()
+        with pytest.raises(QueryTimeout, match="within"):
+            client_bus.get("t1/slow", timeout=0.5)
+        assert time.monotonic() - t0 < 2.5
+        release.set()
+
+
+def test_service_counts_bad_input_and_keeps_serving(client_bus: Bus, router: str,
+                                                     tmp_path) -> None:  # type: ignore[no-untyped-def]
+    echo = _start_echo(router, tmp_path)
+    try:
+        wait_until(lambda: KEYS.alive("echo") in client_bus.alive(KEYS.alive_all), 20,
+                   what="echo service liveliness")
+        echoed: list[bytes] = []
+        client_bus.subscribe(f"{KEYS.root}/test/echo", lambda k, p: echoed.append(p))
+        time.sleep(0.2)
+        good = samples.hand_landmarks()
+        bad = [b"", b"\xc1", b"\x93\x01\x02", samples.hand_body().to_msgpack(),
+               good.to_msgpack()[:-5]]
+        for payload in bad:
+            client_bus.put(KEYS.hand_landmarks, payload)
+        client_bus.put(KEYS.hand_landmarks, good.to_msgpack())
+        wait_until(lambda: len(echoed) == 1, 10, what="echo of the valid message")
+        assert HandLandmarks.from_msgpack(echoed[0]) == good
+        stats = ServiceStats.from_msgpack(client_bus.get(KEYS.stats("echo"))[0][1])
+        assert stats.received == 6 and stats.published == 1
+        assert sum(stats.rejected.values()) == 5
+        assert stats.rejected.get("wrong_schema") == 1
+        assert echo.poll() is None
+    finally:
+        echo.terminate()
+        echo.wait(10)
+    assert echo.returncode == 0  # SIGTERM -> graceful stop
+
+
+def test_liveliness_token_vanishes_within_1s_after_kill(client_bus: Bus, router: str,
+                                                         tmp_path) -> None:  # type: ignore[no-untyped-def]
+    events: list[tuple[float, str, bool]] = []
+    client_bus.watch_liveliness(KEYS.alive_all,
+                                lambda k, alive: events.append((time.monotonic(), k, alive)))
+    echo = _start_echo(router, tmp_path)
+    wait_until(lambda: any(a for _, _, a in events), 20, what="token appears")
+    t_kill = time.monotonic()
+    echo.kill()
+    echo.wait(5)
+    wait_until(lambda: any(not a for _, _, a in events), 5, what="token disappears")
+    t_gone = next(t for t, _, a in events if not a)
+    assert t_gone - t_kill < 1.0
