@@ -25,7 +25,7 @@ from services.common.bus import (
     add_zenoh_arguments,
     options_from_args,
 )
-from services.common.config import SECTIONS, ConfigError, build, merged, section_class, to_toml
+from services.common.config import SECTIONS, ConfigError, section_from_args, to_toml
 from services.common.keys import Keys, check_rig
 from services.common.protocol import Ack, KinematicModel, ServiceStats
 from services.common.recording import McapRecorder, read_recording, replay, write_recording
@@ -47,13 +47,9 @@ def _common(parser: argparse.ArgumentParser) -> None:
                         choices=("DEBUG", "INFO", "WARNING", "ERROR"))
 
 
-def config_section(args: argparse.Namespace, name: str) -> object:
-    """The config dataclass of section ``name`` from ``--config`` and ``--set``."""
-    return build(section_class(name), merged(args.config, args.overrides).get(name, {}), name)
-
-
 def zenoh_options(args: argparse.Namespace) -> ZenohOptions:
-    base = config_section(args, "zenoh")
+    """Zenoh options: command line > environment > ``[zenoh]`` of the config file."""
+    base = section_from_args(args, "zenoh")
     assert isinstance(base, ZenohOptions)
     return options_from_args(args, base)
 
@@ -191,8 +187,27 @@ def cmd_reset(args: argparse.Namespace) -> int:
 
 
 def cmd_config(args: argparse.Namespace) -> int:
-    sections = {name: config_section(args, name) for name in SECTIONS}
+    sections = {name: section_from_args(args, name) for name in SECTIONS}
     print(to_toml(sections))
+    return 0
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    from services.demo import main as demo_main
+
+    return demo_main(args)
+
+
+def cmd_eval(args: argparse.Namespace) -> int:
+    from services.evaluation.cli import main as eval_main
+
+    return eval_main(args)
+
+
+def cmd_bench(args: argparse.Namespace) -> int:
+    from bench.run import run
+
+    run(args.name)
     return 0
 
 
@@ -257,6 +272,20 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--timeout", type=float, default=5.0)
 
     add("config", cmd_config, "print the effective configuration as TOML")
+
+    p = add("demo", cmd_demo, "run every service on loopback on one synthetic demonstration")
+    p.add_argument("--object", default="key", help="object preset (default key)")
+    p.add_argument("--participant", type=int, default=3)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--rate", type=float, default=1.0, help="replay speed factor (default 1)")
+
+    p = add("eval", cmd_eval, "evaluate every method on the synthetic demonstrations (Table II)")
+    from services.evaluation.cli import add_arguments as add_eval_arguments
+
+    add_eval_arguments(p)
+
+    p = add("bench", cmd_bench, "run a benchmark and record it in bench/results/")
+    p.add_argument("name", help="protocol, tracker, kinematics or all")
 
     for name, module, help_text in SERVICE_COMMANDS:
         p = add(name, cmd_service(module), help_text)

@@ -142,6 +142,11 @@ def load_section(name: str, path: str | Path | None = None, overrides: Sequence[
     return build(section_class(name), merged(path, overrides).get(name, {}), name)
 
 
+def section_from_args(args: Any, name: str) -> Any:
+    """Section ``name`` from the CLI's ``--config FILE`` and ``--set`` overrides."""
+    return load_section(name, getattr(args, "config", None), getattr(args, "overrides", ()))
+
+
 def to_toml(sections: Mapping[str, Any]) -> str:
     """Render config dataclasses as TOML (flat scalar, string and list fields)."""
 

@@ -87,8 +87,17 @@ def _to_json(value: Any) -> Any:
     return value
 
 
+def _wire_default(value: Any) -> Any:
+    """msgpack hook for types it does not know: arrays become codec maps, numpy scalars items."""
+    if isinstance(value, np.ndarray):
+        return encode_array(value)
+    if isinstance(value, np.generic):
+        return value.item()
+    raise TypeError(f"cannot encode {type(value).__name__}")
+
+
 def _pack(obj: Any) -> bytes:
-    return msgpack.packb(obj, use_bin_type=True)
+    return msgpack.packb(obj, use_bin_type=True, default=_wire_default)
 
 
 def _unpack(payload: bytes | bytearray | memoryview, what: str) -> Any:
@@ -129,6 +138,16 @@ def peek_envelope(payload: bytes) -> tuple[str | None, int | None]:
     schema, stamp = obj.get("schema"), obj.get("stamp_ns")
     return (schema if isinstance(schema, str) else None,
             stamp if isinstance(stamp, int) and not isinstance(stamp, bool) else None)
+
+
+_DTYPES: dict[str, np.dtype[Any]] = {}
+
+
+def _dtype(text: str) -> np.dtype[Any]:
+    dt = _DTYPES.get(text)
+    if dt is None:
+        dt = _DTYPES[text] = np.dtype(text)
+    return dt
 
 
 def _decode_array_map(value: Any, path: str) -> NDArray[Any]:
@@ -231,12 +250,21 @@ class _Fields:
         if v is None:
             return None
         path = f"{self.path}.{key}"
-        a = _decode_array_map(v, path)
-        if a.dtype.str != dtype:
-            raise ProtocolError(f"{path}: dtype must be {dtype}, got {a.dtype.str}")
-        if a.shape != shape:
-            raise ProtocolError(f"{path}: shape must be {list(shape)}, got {list(a.shape)}")
-        if finite and a.dtype.kind == "f" and not np.isfinite(a).all():
+        # Fast path: the expected dtype and shape, checked before any general parsing.
+        if (isinstance(v, dict) and v.get("dtype") == dtype and v.get("shape") == list(shape)
+                and isinstance(data := v.get("data"), bytes)):
+            dt = _dtype(dtype)
+            if len(data) != math.prod(shape) * dt.itemsize:
+                raise ProtocolError(f"{path}: data has {len(data)} bytes, shape {list(shape)} "
+                                    f"of {dtype} needs {math.prod(shape) * dt.itemsize}")
+            a = np.frombuffer(data, dt).reshape(shape)
+        else:
+            a = _decode_array_map(v, path)
+            if a.dtype.str != dtype:
+                raise ProtocolError(f"{path}: dtype must be {dtype}, got {a.dtype.str}")
+            if a.shape != shape:
+                raise ProtocolError(f"{path}: shape must be {list(shape)}, got {list(a.shape)}")
+        if finite and a.dtype.kind == "f" and not _all_finite(a):
             raise ProtocolError(f"{path}: contains NaN or infinity")
         return a
 
@@ -245,6 +273,13 @@ class _Fields:
         a = self.array(key, dtype, shape, finite=finite)
         assert a is not None
         return a
+
+
+def _all_finite(a: NDArray[Any]) -> bool:
+    """True when no element is NaN or infinite; one reduction in the common case."""
+    if math.isfinite(float(a.sum())):
+        return True
+    return bool(np.isfinite(a).all())  # the sum may overflow with huge but finite values
 
 
 def _check_unit(v: NDArray[Any], path: str) -> None:
@@ -299,7 +334,7 @@ class Message:
         return d
 
     def to_msgpack(self) -> bytes:
-        return _pack(_to_wire(self.to_dict()))
+        return _pack(self.to_dict())
 
     def to_json_obj(self) -> dict[str, Any]:
         """A JSON-ready dict (arrays as nested lists, non-finite floats as null)."""
@@ -460,8 +495,8 @@ class Hand:
         points = f.req_array("points", "<f4", (NUM_LANDMARKS, 3), finite=False)
         if np.isinf(points).any():
             raise ProtocolError(f"{f.path}.points: infinite coordinate (NaN marks no depth)")
-        visibility = f.req_array("visibility", "<f4", (NUM_LANDMARKS,))
-        if ((visibility < 0.0) | (visibility > 1.0)).any():
+        visibility = f.req_array("visibility", "<f4", (NUM_LANDMARKS,), finite=False)
+        if not (visibility.min() >= 0.0 and visibility.max() <= 1.0):  # NaN fails too
             raise ProtocolError(f"{f.path}.visibility: values must lie in [0, 1]")
         return cls(handedness=f.str("handedness", ("left", "right")),
                    score=f.float("score", 0.0, 1.0), points=points, visibility=visibility,

@@ -1,0 +1,171 @@
+"""``handkse demo``: every service as its own process on loopback, one demonstration through them.
+
+Starts a Zenoh router, the tracker and the kinematics service as separate processes on a TCP
+loopback endpoint, replays a synthetic demonstration (default: the key, participant 3) in real
+time from this process, prints live progress (type, probabilities, tangent error against the
+ground truth), then queries the final model with ``get`` and prints it beside the truth.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import socket
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from services.common.bus import Bus, BusError, ZenohOptions
+from services.common.keys import Keys
+from services.common.protocol import KinematicModel
+from services.common.recording import replay
+from services.evaluation.pipeline import joint_estimate
+from services.kinematics.metrics import JointEstimate, tangent_error
+from services.synthetic.generator import Demonstration, generate
+from services.synthetic.replay import demonstration_recording
+
+SERVICES = ("tracker", "kinematics")
+
+
+def free_tcp_endpoint() -> str:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return f"tcp/127.0.0.1:{s.getsockname()[1]}"
+
+
+def truth_of(demo: Demonstration) -> JointEstimate:
+    joint = demo.truth.joint
+    return JointEstimate(type=joint.type, axis=np.array(joint.axis), point=np.array(joint.point))
+
+
+def demo_tangent_error_deg(model: KinematicModel, demo: Demonstration) -> float:
+    positions = demo.truth.grasp_points
+    return float(np.degrees(tangent_error(truth_of(demo), joint_estimate(model), positions)))
+
+
+class ServiceProcesses:
+    """Router + services as subprocesses of this one; all terminated on exit."""
+
+    def __init__(self, endpoint: str, workdir: Path, rig: str) -> None:
+        self.endpoint = endpoint
+        self.workdir = workdir
+        self.rig = rig
+        self.procs: list[subprocess.Popen[bytes]] = []
+
+    def start(self, name: str, *args: str) -> None:
+        log = open(self.workdir / f"{name}.log", "wb")  # noqa: SIM115 - owned by the child
+        env = dict(os.environ, PYTHONUNBUFFERED="1")
+        self.procs.append(subprocess.Popen([sys.executable, "-m", "services", *args],
+                                           stdout=log, stderr=subprocess.STDOUT, env=env))
+
+    def __enter__(self) -> ServiceProcesses:
+        z = ["--no-multicast-scouting", "--rig", self.rig]
+        self.start("router", "router", "-l", self.endpoint, *z)
+        client = ["-m", "client", "-e", self.endpoint, *z]
+        self.start("tracker", "tracker", *client)
+        self.start("kinematics", "kinematics", *client,
+                   "--state-file", str(self.workdir / "kinematics.state"))
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        for p in self.procs:
+            if p.poll() is None:
+                p.terminate()
+        for p in self.procs:
+            try:
+                p.wait(5)
+            except subprocess.TimeoutExpired:
+                p.kill()
+
+
+def _progress_line(model: KinematicModel, demo: Demonstration, t: float) -> str:
+    probs = " ".join(f"{k[:3]} {v:.2f}" for k, v in model.probabilities.items())
+    err = demo_tangent_error_deg(model, demo) if model.type in ("prismatic", "revolute") else None
+    err_text = f"{err:5.1f} deg" if err is not None else "  -  "
+    return (f"  t={t:5.1f} s  updates {model.updates:4d}  {model.type:<12} [{probs}]  "
+            f"tangent error {err_text}")
+
+
+def print_comparison(model: KinematicModel, demo: Demonstration) -> float:
+    """Print the final model beside the ground truth; returns the tangent error in degrees."""
+    truth = truth_of(demo)
+    est = joint_estimate(model)
+    err = demo_tangent_error_deg(model, demo)
+    fmt = lambda v: "[" + ", ".join(f"{x:+.3f}" for x in v) + "]"  # noqa: E731
+    print()
+    print(f"{'':14}{'estimate':<34}{'ground truth':<34}")
+    print(f"{'type':14}{est.type:<34}{truth.type:<34}")
+    print(f"{'P(type)':14}{model.probabilities.get(est.type, 0.0):<34.3f}{'':34}")
+    print(f"{'axis':14}{fmt(est.axis):<34}{fmt(truth.axis):<34}")
+    if truth.type == "revolute" or est.type == "revolute":
+        print(f"{'point (m)':14}{fmt(est.point):<34}{fmt(truth.point):<34}")
+    print(f"{'updates':14}{model.updates:<34d}")
+    print(f"\ntangent error {err:.1f} deg (frame: {model.frame_id})")
+    return err
+
+
+def run_demo(object_name: str = "key", participant: int = 3, seed: int = 0, rate: float = 1.0,
+             rig: str = "demo", workdir: Path | None = None) -> float:
+    """Run the whole pipeline on one synthetic demonstration; returns the tangent error (deg)."""
+    demo = generate(object_name, participant, seed)
+    messages = demonstration_recording(demo, rig)
+    duration = (demo.stamps_ns[-1] - demo.stamps_ns[0]) * 1e-9
+    workdir = workdir or Path(tempfile.mkdtemp(prefix="handkse-demo-"))
+    endpoint = free_tcp_endpoint()
+    keys = Keys(rig)
+    print(f"handkse demo: {object_name}, participant {participant}, {len(messages)} frames "
+          f"({duration:.1f} s at rate {rate:g}); services on {endpoint}; logs in {workdir}")
+    options = ZenohOptions(mode="client", connect=(endpoint,), multicast_scouting=False)
+    with ServiceProcesses(endpoint, workdir, rig), Bus(options) as bus:
+        _wait_alive(bus, keys, SERVICES, 60.0)
+        bus.get(keys.reset("kinematics"))  # a fresh demonstration even with an old state file
+        bus.get(keys.reset("tracker"))
+        latest: list[KinematicModel] = []
+        bus.subscribe(keys.kinematics_model,
+                      lambda _k, p: latest.append(KinematicModel.from_msgpack(p)))
+        stop = threading.Event()
+        player = threading.Thread(target=replay, args=(messages, bus.put),
+                                  kwargs={"rate": rate, "stop": stop}, daemon=True)
+        t0 = time.monotonic()
+        player.start()
+        while player.is_alive():
+            player.join(0.5)
+            if latest:
+                print(_progress_line(latest[-1], demo, time.monotonic() - t0), flush=True)
+        _wait_settled(latest)
+        final = KinematicModel.from_msgpack(bus.get(keys.kinematics_model)[0][1])
+    return print_comparison(final, demo)
+
+
+def _wait_alive(bus: Bus, keys: Keys, services: Sequence[str], timeout: float) -> None:
+    deadline = time.monotonic() + timeout
+    wanted = {keys.alive(s) for s in services}
+    while wanted - set(bus.alive(keys.alive_all, timeout=0.5)):
+        if time.monotonic() > deadline:
+            raise BusError(f"services did not start within {timeout:.0f} s: {sorted(wanted)}")
+        time.sleep(0.1)
+
+
+def _wait_settled(latest: list[KinematicModel], quiet_s: float = 1.0, timeout: float = 20.0
+                  ) -> None:
+    """Wait until no new model arrived for ``quiet_s`` (the pipeline drained)."""
+    deadline = time.monotonic() + timeout
+    count = len(latest)
+    quiet_since = time.monotonic()
+    while time.monotonic() < deadline:
+        time.sleep(0.1)
+        if len(latest) != count:
+            count, quiet_since = len(latest), time.monotonic()
+        elif time.monotonic() - quiet_since >= quiet_s:
+            return
+
+
+def main(args: argparse.Namespace) -> int:
+    run_demo(args.object, args.participant, args.seed, args.rate, args.rig)
+    return 0

@@ -1,0 +1,95 @@
+"""Tracker service: HandLandmarks in, HandBody out.
+
+Subscribes ``handkse/{rig}/hand/landmarks`` (FIFO: every frame matters to the filters) and
+``handkse/{rig}/kinematics/model`` (the latest model drives the third motion model, through the
+same prediction function the kinematics library uses), publishes ``handkse/{rig}/hand/body``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import threading
+
+import numpy as np
+
+from services.common.bus import Bus, options_from_args
+from services.common.config import section_from_args
+from services.common.keys import Keys
+from services.common.protocol import HandBody, HandLandmarks, KinematicModel, LandmarkStates
+from services.common.service import BusLike, Service, stop_on_signals
+from services.kinematics.prediction import predict_hand_pose
+from services.tracker.config import TrackerConfig
+from services.tracker.tracker import HandBodyEstimate, HandObservation, HandTracker
+
+
+def body_message(estimate: HandBodyEstimate, seq: int) -> HandBody:
+    """The wire form of a tracker estimate."""
+    return HandBody(
+        seq=seq, stamp_ns=int(estimate.stamp_ns), frame_id=estimate.frame_id,
+        initialized=bool(estimate.initialized), pose=np.asarray(estimate.pose, "<f8"),
+        twist=np.asarray(estimate.twist, "<f8"),
+        covariance=np.asarray(0.5 * (estimate.covariance + estimate.covariance.T), "<f8"),
+        motion_model=estimate.motion_model,
+        landmarks=LandmarkStates(points=np.asarray(estimate.landmark_points, "<f4"),
+                                 variance=np.asarray(estimate.landmark_variance, "<f4"),
+                                 status=np.asarray(estimate.landmark_status, "|u1")))
+
+
+def observations(message: HandLandmarks) -> list[HandObservation]:
+    return [HandObservation(handedness=h.handedness, score=float(h.score),
+                            points=np.asarray(h.points, float),
+                            visibility=np.asarray(h.visibility, float))
+            for h in message.hands]
+
+
+class TrackerNode:
+    """Binds a :class:`HandTracker` to the bus through a :class:`Service`."""
+
+    def __init__(self, service: Service, config: TrackerConfig) -> None:
+        self.service = service
+        self.tracker = HandTracker(config)
+        self.model: KinematicModel | None = None
+        keys = service.keys
+        service.subscribe(keys.hand_landmarks, HandLandmarks, self.on_landmarks)
+        service.subscribe(keys.kinematics_model, KinematicModel, self.on_model)
+        service.on_reset(self.reset)
+
+    def on_model(self, model: KinematicModel) -> None:
+        self.model = model
+
+    def _prior(self, stamp_ns: int) -> tuple[np.ndarray, np.ndarray] | None:
+        return None if self.model is None else predict_hand_pose(self.model, stamp_ns)
+
+    def on_landmarks(self, message: HandLandmarks) -> None:
+        before = dict(self.tracker.rejected)
+        with self.service.latency.measure("step"):
+            estimate = self.tracker.step(message.stamp_ns, observations(message),
+                                         kinematic_prior=self._prior)
+        for reason, n in self.tracker.rejected.items():
+            if n > before.get(reason, 0):
+                self.service.reject(reason, f"landmarks at {message.stamp_ns} ns")
+        if estimate is None:
+            return
+        keys = self.service.keys
+        self.service.publish(keys.hand_body,
+                             body_message(estimate, self.service.next_seq(keys.hand_body)))
+
+    def reset(self) -> None:
+        self.tracker.reset()
+        self.model = None
+
+
+def run(bus: BusLike, keys: Keys, config: TrackerConfig, stop: threading.Event) -> None:
+    service = Service("tracker", bus, keys)
+    TrackerNode(service, config)
+    service.run(stop)
+
+
+def main(args: argparse.Namespace) -> int:
+    config = section_from_args(args, "tracker")
+    stop = threading.Event()
+    stop_on_signals(stop)
+    with Bus(options_from_args(args, section_from_args(args, "zenoh"))) as bus:
+        print("tracker ready", flush=True)
+        run(bus, Keys(args.rig), config, stop)
+    return 0
