@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import platform
@@ -36,10 +37,8 @@ def machine() -> dict[str, Any]:
         pass
     versions = {}
     for pkg in ("eclipse-zenoh", "numpy", "scipy", "msgpack", "onnxruntime", "mujoco"):
-        try:
+        with contextlib.suppress(metadata.PackageNotFoundError):
             versions[pkg] = metadata.version(pkg)
-        except metadata.PackageNotFoundError:
-            pass
     try:
         commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True,
                                 text=True, check=False, cwd=RESULTS.parent).stdout.strip()

@@ -204,6 +204,12 @@ def cmd_eval(args: argparse.Namespace) -> int:
     return eval_main(args)
 
 
+def cmd_tune(args: argparse.Namespace) -> int:
+    from services.evaluation.tune import main as tune_main
+
+    return tune_main(args)
+
+
 def cmd_bench(args: argparse.Namespace) -> int:
     from bench.run import run
 
@@ -283,6 +289,11 @@ def build_parser() -> argparse.ArgumentParser:
     from services.evaluation.cli import add_arguments as add_eval_arguments
 
     add_eval_arguments(p)
+
+    p = add("tune", cmd_tune, "Bayesian optimisation of the Table I dagger parameters (optuna)")
+    from services.evaluation.tune import add_arguments as add_tune_arguments
+
+    add_tune_arguments(p)
 
     p = add("bench", cmd_bench, "run a benchmark and record it in bench/results/")
     p.add_argument("name", help="protocol, tracker, kinematics or all")

@@ -90,7 +90,6 @@ class Service:
             queue_size)
         self._last_log: dict[str, float] = {}
         self._reset_handlers: list[Callable[[], None]] = []
-        bus.declare_token(keys.alive(name))
         bus.declare_queryable(keys.stats(name), self._answer_stats)
         bus.declare_queryable(keys.reset(name), self._answer_reset)
 
@@ -180,6 +179,9 @@ class Service:
     def run(self, stop: threading.Event, idle: Callable[[], None] | None = None,
             idle_period_s: float = 0.1) -> None:
         """Handle queued events until ``stop`` is set; ``idle`` runs about every ``idle_period_s``."""
+        # The liveliness token means "ready": declared only once every subscription and
+        # queryable of the service exists.
+        self.bus.declare_token(self.keys.alive(self.name))
         next_idle = time.monotonic() + idle_period_s
         while not stop.is_set():
             try:

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict, dataclass
 
@@ -19,6 +19,7 @@ import numpy as np
 from services.evaluation.pipeline import ablation_config, joint_estimate, run_pipeline
 from services.kinematics import baselines, metrics
 from services.kinematics.config import KinematicsConfig
+from services.kinematics.estimator import KinematicBelief
 from services.kinematics.metrics import JointEstimate
 from services.synthetic.generator import (
     EVALUATION_SPLIT,
@@ -75,7 +76,7 @@ def _row(demo: Demonstration, method: str, est: JointEstimate, runtime: float,
     positions = demo.truth.grasp_points
     line = (metrics.axis_line_distance(truth, est)
             if truth.type == "revolute" and est.type == "revolute" else math.nan)
-    axis = (math.degrees(metrics.axis_angle(truth, est))
+    axis = (math.degrees(metrics.axis_angle_error(truth, est))
             if est.type in ("prismatic", "revolute") else math.nan)
     return Row(object=demo.object_name, participant=demo.participant, seed=demo.seed,
                method=method, type_true=truth.type, type_est=est.type,
@@ -90,16 +91,33 @@ def _ours(demo: Demonstration, method: str, tracker: TrackerConfig,
     result = run_pipeline(demo, tracker, kinematics)
     runtime = time.perf_counter() - t0
     truth = _truth(demo)
-    estimates = [None if b is None else joint_estimate(b) for b in result.history]
-    converge = metrics.time_to_converge(truth, estimates, result.stamps_ns,
-                                        demo.truth.grasp_points, math.radians(CONVERGED_DEG))
-    return _row(demo, method, joint_estimate(result.final), runtime, converge)
+    estimates = _distinct_estimates(result.history)
+    errors = metrics.tangent_errors_over_time(truth, estimates, demo.truth.grasp_points)
+    converge = metrics.time_to_converge(result.stamps_ns, errors, CONVERGED_DEG)
+    return _row(demo, method, joint_estimate(result.final), runtime,
+                math.nan if converge is None else converge)
+
+
+def _distinct_estimates(history: Sequence[KinematicBelief | None]) -> list[JointEstimate | None]:
+    """Joint estimates per frame, converting each distinct belief once."""
+    out: list[JointEstimate | None] = []
+    last: tuple[KinematicBelief | None, JointEstimate | None] = (None, None)
+    for belief in history:
+        if belief is not last[0]:
+            last = (belief, None if belief is None else joint_estimate(belief))
+        out.append(last[1])
+    return out
 
 
 def _timed(demo: Demonstration, method: str, fn: Callable[[], JointEstimate]) -> Row:
     t0 = time.perf_counter()
     est = fn()
     return _row(demo, method, est, time.perf_counter() - t0)
+
+
+def _stream(demo: Demonstration) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The landmark stream every method sees: stamps, points (NaN = missing), visibility."""
+    return demo.stamps_ns, demo.points, demo.visibility
 
 
 def evaluate_demo(object_name: str, participant: int, seed: int, settings: Settings,
@@ -114,13 +132,15 @@ def evaluate_demo(object_name: str, participant: int, seed: int, settings: Setti
             rows.append(_ours(demo, method, ablation_config(settings.tracker),
                               settings.kinematics))
         elif method == "regal":
-            rows.append(_timed(demo, method, lambda: baselines.regal_style(demo)))
+            rows.append(_timed(demo, method, lambda: baselines.regal_style(*_stream(demo))))
         elif method == "screwmimic_faithful":
             rows.append(_timed(demo, method,
-                               lambda: baselines.screwmimic_style(demo, variant="faithful")))
+                               lambda: baselines.screwmimic_style(*_stream(demo),
+                                                                  variant="faithful")))
         elif method == "screwmimic_fair":
             rows.append(_timed(demo, method,
-                               lambda: baselines.screwmimic_style(demo, variant="fair")))
+                               lambda: baselines.screwmimic_style(*_stream(demo),
+                                                                  variant="fair")))
         else:
             raise ValueError(f"unknown method {method!r}; known: {list(METHODS)}")
     return rows
