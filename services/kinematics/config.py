@@ -1,0 +1,145 @@
+"""Configuration of the kinematic-model estimator (joint EKFs and model selection).
+
+Defaults are the ICRA-25 Table I values for the joint EKFs and OMIP's ``joint_tracker_cfg.yaml``
+(master, plus the ``wip_integrate_proprio_and_ft`` disconnected constant) for model selection; see
+``/work/shared/design/OMIP_JOINT_FILTERS.md`` sections 2, 3, 4 and 6. Every field is a plain
+``float``/``int``/``bool``/``str`` so the ``[kinematics]`` TOML section can set it.
+
+Process-noise scales follow OMIP's dt scaling: a value ``s`` for an axis angle, a point coordinate or
+the joint value ``q`` adds the variance ``s * dt**3 / 3`` per prediction of ``dt`` seconds, and a value
+for the joint velocity adds ``s * dt``. Both kinds therefore have the unit ``unit**2 / s**3`` (m or
+rad), written in the field names.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, fields
+
+LIKELIHOOD_AGGREGATIONS = ("product", "mean")
+
+
+@dataclass(frozen=True)
+class KinematicsConfig:
+    """Parameters of :class:`services.kinematics.estimator.KinematicEstimator`."""
+
+    # --- Prismatic EKF, state (axis tangent b1, b2 [rad], q [m], qdot [m/s]) (Table I) ---
+    # P0 = s * I4 (rad^2 for the axis, m^2 for q, m^2/s^2 for qdot).
+    prismatic_initial_variance: float = 3.0
+    # Q scale of each axis tangent coordinate: s * dt^3 / 3 [rad^2].
+    prismatic_axis_noise_rad2_per_s3: float = 2.55
+    # Q scale of q: s * dt^3 / 3 [m^2].
+    prismatic_q_noise_m2_per_s3: float = 0.7
+    # Q scale of qdot: s * dt [m^2/s^2].
+    prismatic_qdot_noise_m2_per_s3: float = 75.0
+
+    # --- Revolute EKF, state (axis b1, b2 [rad], point p [m] (3), q [rad], qdot [rad/s]) ---
+    revolute_initial_variance: float = 1.0
+    revolute_axis_noise_rad2_per_s3: float = 2.55
+    # Q scale of each point coordinate (applied orthogonally to the axis): s * dt^3 / 3 [m^2].
+    revolute_point_noise_m2_per_s3: float = 0.3
+    revolute_q_noise_rad2_per_s3: float = 5.1
+    revolute_qdot_noise_rad2_per_s3: float = 75.0
+
+    # --- Measurement noise R = f * Sigma_z + floor * I (OMIP section 2.6, [REC] 8.6) ---
+    # Prismatic: f = 1 / (1 - exp(-|z| / length)), |z| = displacement norm [m].
+    prismatic_inflation_length_m: float = 0.03
+    # Revolute: f = 1 / (1 - exp(-sin(|w| / 2) / scale)), |w| = rotation angle of the delta [rad].
+    revolute_inflation_scale: float = 1.0
+    # Both factors are clipped at this value.
+    max_inflation_factor: float = 1e6
+    # Variance added to every diagonal entry of R [m^2 or rad^2].
+    measurement_noise_floor: float = 1e-6
+
+    # Longest prediction step [s]: a longer gap between stamps is predicted as this long. The
+    # constant-velocity model is not extrapolated over a long loss of tracking (for a revolute
+    # joint that would pick an arbitrary 2 pi branch of q; the process noise grows as dt^3).
+    max_prediction_dt_s: float = 0.5
+
+    # --- Filter start ([REC] section 3: no init from a near-zero delta) ---
+    # The prismatic filter starts once the hand origin moved this far from the reference [m].
+    prismatic_min_translation_m: float = 0.01
+    # The revolute filter starts once the hand rotated this much from the reference [rad]
+    # (OMIP rev_min_rot_for_ee).
+    revolute_min_rotation_rad: float = 0.045
+    # ... and only once that motion is this many standard deviations of its measurement noise
+    # (sqrt of the Mahalanobis form of the displacement / rotation vector), so the initial axis is
+    # not drawn from noise.
+    min_motion_sigmas: float = 5.0
+
+    # --- Model selection (OMIP section 4) ---
+    # Number of history entries sampled uniformly over the whole demonstration.
+    likelihood_sample_num: int = 100
+    # Fixed standard deviations of the per-sample error densities.
+    likelihood_sigma_translation_m: float = 0.05
+    likelihood_sigma_rotation_rad: float = 0.2
+    # "product": log L = sum of per-sample log densities (a joint likelihood; default).
+    # "mean": log L = log of the arithmetic mean of the densities (OMIP's exact formula).
+    likelihood_aggregation: str = "product"
+    # Rigid "motion memory": rigid is ruled out for good once a delta exceeds these.
+    rigid_max_translation_m: float = 0.05
+    rigid_max_rotation_rad: float = 0.1
+    # Std of the normal prior on the distance from the revolute axis to the hand [m].
+    revolute_max_joint_distance_m: float = 0.5
+    # Per-sample density level of the "disconnected" hypothesis (OMIP wip disconnected_ne; with
+    # the 0.25 prior this is OMIP's constant score 0.8).
+    disconnected_density: float = 3.2
+    # Unnormalised prior of each type (OMIP: 1/4 each).
+    prior_rigid: float = 0.25
+    prior_prismatic: float = 0.25
+    prior_revolute: float = 0.25
+    prior_disconnected: float = 0.25
+
+    # --- History and reporting ---
+    # Maximum number of stored deltas; when full, every other one is dropped and the sampling
+    # stride doubles, so the stored entries stay uniformly spread over the demonstration.
+    history_capacity: int = 256
+    # The belief's type stays "unknown" for the first this-many updates (OMIP creates the joint
+    # filters on the 5th frame of a pair).
+    min_updates_for_type: int = 5
+    # Without enough motion to start a joint filter, the type stays "unknown" until the hand has
+    # been observed for this long [s]; after that "rigid" is a supported conclusion.
+    min_still_duration_for_rigid_s: float = 1.0
+
+    def __post_init__(self) -> None:
+        positive = (
+            "prismatic_initial_variance", "revolute_initial_variance",
+            "prismatic_inflation_length_m", "revolute_inflation_scale",
+            "likelihood_sigma_translation_m", "likelihood_sigma_rotation_rad",
+            "rigid_max_translation_m", "rigid_max_rotation_rad",
+            "revolute_max_joint_distance_m", "disconnected_density",
+            "prismatic_min_translation_m", "revolute_min_rotation_rad", "max_prediction_dt_s",
+        )
+        non_negative = (
+            "prismatic_axis_noise_rad2_per_s3", "prismatic_q_noise_m2_per_s3",
+            "prismatic_qdot_noise_m2_per_s3", "revolute_axis_noise_rad2_per_s3",
+            "revolute_point_noise_m2_per_s3", "revolute_q_noise_rad2_per_s3",
+            "revolute_qdot_noise_rad2_per_s3", "measurement_noise_floor",
+            "prior_rigid", "prior_prismatic", "prior_revolute", "prior_disconnected",
+            "min_still_duration_for_rigid_s", "min_motion_sigmas",
+        )
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if isinstance(value, float) and not math.isfinite(value):
+                raise ValueError(f"{f.name} must be finite, got {value!r}")
+        for name in positive:
+            if not getattr(self, name) > 0.0:
+                raise ValueError(f"{name} must be > 0, got {getattr(self, name)!r}")
+        for name in non_negative:
+            if not getattr(self, name) >= 0.0:
+                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)!r}")
+        if not self.max_inflation_factor >= 1.0:
+            raise ValueError(f"max_inflation_factor must be >= 1, got {self.max_inflation_factor!r}")
+        if self.prior_disconnected <= 0.0:
+            raise ValueError("prior_disconnected must be > 0 (the posterior needs one finite score)")
+        if self.likelihood_sample_num < 1:
+            raise ValueError(f"likelihood_sample_num must be >= 1, got {self.likelihood_sample_num}")
+        if self.history_capacity < 2 * self.likelihood_sample_num or self.history_capacity % 2:
+            raise ValueError(
+                f"history_capacity must be even and >= 2 * likelihood_sample_num "
+                f"({2 * self.likelihood_sample_num}), got {self.history_capacity}")
+        if self.min_updates_for_type < 1:
+            raise ValueError(f"min_updates_for_type must be >= 1, got {self.min_updates_for_type}")
+        if self.likelihood_aggregation not in LIKELIHOOD_AGGREGATIONS:
+            raise ValueError(f"likelihood_aggregation must be one of {LIKELIHOOD_AGGREGATIONS}, "
+                             f"got {self.likelihood_aggregation!r}")

@@ -1,0 +1,74 @@
+"""Rigid joint (OMIP 2.2): no state; the hand does not move relative to the reference."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from services.kinematics.filters.geometry import (
+    gaussian_log_density,
+    rotation_angles_from_trace,
+    se3_log_fast,
+)
+
+Array = NDArray[np.float64]
+
+
+class RigidJoint:
+    """Rigid joint: the predicted delta is I.
+
+    ``update(z, R)`` takes the measured delta ``z = D`` (4x4) with its left-perturbation covariance
+    ``R`` (6x6) and keeps them; the innovation ``y = log D`` (6,) is computed when asked for, with
+    ``S = R``.
+    """
+
+    dim = 0
+
+    def __init__(self) -> None:
+        self.z: Array = np.eye(4)
+        self.S: Array = np.eye(6)
+
+    def predict(self, dt: float) -> None:
+        """Nothing to predict: the joint has no state."""
+
+    def update(self, z: Array, R: Array) -> None:
+        """Record the measured delta ``z`` (4x4) and ``S = R`` (6x6)."""
+        self.z = z
+        self.S = R
+
+    @property
+    def y(self) -> Array:
+        """Innovation ``log(z Exp(0)^-1) = log z`` (6,)."""
+        return se3_log_fast(self.z)
+
+    def log_likelihood(self) -> float:
+        """``log N(y; 0, S)`` of the last innovation."""
+        return gaussian_log_density(self.y, self.S)
+
+    def predicted_delta(self, q: float | None = None) -> tuple[Array, Array]:
+        """Identity delta with zero covariance (a rigid joint has no parameters)."""
+        return np.eye(4), np.zeros((6, 6))
+
+    @staticmethod
+    def history_errors(d: Array, R_flat: Array, trace: Array,
+                       q: Array | None = None) -> tuple[Array, Array]:
+        """OMIP 4 errors of samples against "no motion": ``e_t = |d_j|``, ``e_r = angle(R_j)``.
+
+        ``d`` (m,3) hand displacements from the reference [m], ``R_flat`` (m,9) the delta
+        rotations row-major, ``trace`` (m,) their traces.
+        """
+        return np.sqrt(np.einsum("ij,ij->i", d, d)), rotation_angles_from_trace(trace)
+
+    def to_state(self) -> dict[str, Any]:
+        """The complete filter state (arrays copied) for snapshots."""
+        return {"z": np.array(self.z), "S": np.array(self.S)}
+
+    @classmethod
+    def from_state(cls, state: dict[str, Any]) -> RigidJoint:
+        """Rebuild a filter from :meth:`to_state` exactly (no re-normalisation)."""
+        f = cls()
+        f.z = np.array(state["z"], dtype=float)
+        f.S = np.array(state["S"], dtype=float)
+        return f

@@ -1,0 +1,82 @@
+"""Hand pose predicted from a kinematic model: the tracker's third motion model, and anyone else's.
+
+One function, :func:`predict_hand_pose`, duck-typed on the attribute names of the wire
+``KinematicModel`` (``services/common/protocol.py``) and of
+:class:`services.kinematics.estimator.KinematicBelief`: ``type``, ``prismatic.{axis, q, dq,
+covariance}``, ``revolute.{axis, point, q, dq, covariance}``, ``reference_pose``, ``stamp_ns``.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from services.kinematics.filters import (
+    prismatic_twist_jacobian,
+    revolute_delta,
+    revolute_left_jacobian,
+    revolute_twist_jacobian,
+    tangent_basis,
+)
+
+Array = NDArray[np.float64]
+
+
+def _unit(v: Any) -> Array:
+    u = np.asarray(v, dtype=float).reshape(3)
+    return u / math.sqrt(float(u @ u))
+
+
+def predict_hand_pose(belief_like: Any, stamp_ns: int) -> tuple[Array, Array] | None:
+    """Predicted hand pose ``T_frame_hand`` (4x4) at ``stamp_ns`` and its 6x6 covariance, or None.
+
+    - prismatic / revolute: ``T = Exp(q_pred * screw) @ reference_pose`` with
+      ``q_pred = q + dq * (stamp_ns - belief.stamp_ns) * 1e-9``; the screw is ``(u, 0)`` (prismatic)
+      or ``(p x u, u)`` (revolute). The covariance is that of the left perturbation of ``T`` in
+      ``frame`` (linear first), propagated from the model covariance (axis in
+      ``tangent_basis(axis)`` coordinates, point, q, dq) through the exact Jacobian of ``Exp``; it
+      does not include the uncertainty of the reference pose itself, nor any process noise of the
+      caller, which the caller adds.
+    - rigid: the hand does not move relative to its reference, so the prediction is
+      ``reference_pose`` with zero (parameter) covariance.
+    - unknown, disconnected, or a type whose parameters are missing: None (no kinematic prediction).
+    """
+    model_type = belief_like.type
+    T_ref = np.asarray(belief_like.reference_pose, dtype=float)
+    if model_type == "rigid":
+        return T_ref.copy(), np.zeros((6, 6))
+    dt = (int(stamp_ns) - int(belief_like.stamp_ns)) * 1e-9
+    if model_type == "prismatic":
+        prm = belief_like.prismatic
+        if prm is None:
+            return None
+        u = _unit(prm.axis)
+        q = float(prm.q) + float(prm.dq) * dt
+        J = prismatic_twist_jacobian(u, tangent_basis(u), q)
+        J[:, 3] = dt * J[:, 2]  # q_pred = q + dq dt
+        C = np.asarray(prm.covariance, dtype=float)
+        cov = J @ C @ J.T  # a pure translation: the SE(3) left Jacobian is I
+        D = np.eye(4)
+        D[:3, 3] = q * u
+    elif model_type == "revolute":
+        rev = belief_like.revolute
+        if rev is None:
+            return None
+        u = _unit(rev.axis)
+        p = np.asarray(rev.point, dtype=float).reshape(3)
+        q = float(rev.q) + float(rev.dq) * dt
+        J = revolute_twist_jacobian(u, p, tangent_basis(u), q)
+        J[:, 6] = dt * J[:, 5]  # q_pred = q + dq dt
+        J = revolute_left_jacobian(u, p, q) @ J  # SE(3) left Jacobian at q (p x u, u)
+        C = np.asarray(rev.covariance, dtype=float)
+        cov = J @ C @ J.T
+        D = revolute_delta(u, p, q)
+    else:
+        return None
+    return D @ T_ref, 0.5 * (cov + cov.T)
+
+
+__all__ = ["predict_hand_pose"]

@@ -1,0 +1,391 @@
+"""KinematicEstimator end to end on synthetic hand-body streams."""
+
+from __future__ import annotations
+
+import copy
+import math
+from typing import Any
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from services.common.se3 import se3_exp
+from services.kinematics.config import KinematicsConfig
+from services.kinematics.estimator import (
+    KinematicBelief,
+    KinematicEstimator,
+    canonical_axis_sign,
+)
+from services.kinematics.filters import revolute_delta
+from tests.kinematics import (
+    Joint,
+    Sample,
+    angle_between,
+    demo,
+    min_jerk,
+    prismatic_joint,
+    revolute_joint,
+    unit,
+)
+
+Array = np.ndarray
+
+
+def run(samples: list[Sample], config: KinematicsConfig | None = None,
+        ) -> tuple[KinematicEstimator, list[KinematicBelief]]:
+    est = KinematicEstimator(config)
+    beliefs = [est.update(*s) for s in samples]
+    return est, beliefs
+
+
+def check_exact(belief: KinematicBelief, joint: Joint, q_true: float, tol: float = 1e-4) -> None:
+    """Type, posterior > 0.9 and parameters within ``tol`` (axis in the published convention)."""
+    assert belief.type == joint.kind
+    assert belief.probabilities[joint.kind] > 0.9
+    s = canonical_axis_sign(joint.axis)
+    if joint.kind == "prismatic":
+        prm = belief.prismatic
+        assert prm is not None
+        np.testing.assert_allclose(prm.axis, s * joint.axis, atol=tol)
+        assert prm.q == pytest.approx(s * q_true, abs=tol)
+    else:
+        rev = belief.revolute
+        assert rev is not None
+        np.testing.assert_allclose(rev.axis, s * joint.axis, atol=tol)
+        np.testing.assert_allclose(rev.point, joint.closest_point(), atol=tol)
+        assert rev.q == pytest.approx(s * q_true, abs=tol)
+
+
+def check_belief_invariants(b: KinematicBelief) -> None:
+    assert sum(b.probabilities.values()) == pytest.approx(1.0, abs=1e-12)
+    assert set(b.probabilities) == {"rigid", "prismatic", "revolute", "disconnected"}
+    assert np.isfinite(b.reference_pose).all()
+    for params, n in ((b.prismatic, 4), (b.revolute, 7)):
+        if params is None:
+            continue
+        assert np.linalg.norm(params.axis) == pytest.approx(1.0, abs=1e-12)
+        assert canonical_axis_sign(params.axis) == 1.0
+        C = params.covariance
+        assert C.shape == (n, n) and np.isfinite(C).all()
+        np.testing.assert_array_equal(C, C.T)
+        assert np.linalg.eigvalsh(C).min() > -1e-12
+        assert math.isfinite(params.q) and math.isfinite(params.dq)
+    if b.revolute is not None:
+        assert abs(float(b.revolute.point @ b.revolute.axis)) < 1e-9
+
+
+# --------------------------------------------------------------------------------------------
+# Exact demonstrations
+# --------------------------------------------------------------------------------------------
+
+EXACT_CASES = {
+    "prismatic": (prismatic_joint([0.3, -0.2, 0.9], [0.1, 0.05, 0.6]), 0.12),
+    "revolute_10cm": (revolute_joint([0.1, 1.0, 0.2], [0.2, -0.1, 0.7], 0.10), math.pi / 2),
+    "key_1cm": (revolute_joint([0.05, 0.1, 1.0], [0.0, 0.1, 0.5], 0.01), 2.0),
+}
+
+
+@pytest.mark.parametrize("name", list(EXACT_CASES))
+def test_exact_demonstration(name: str) -> None:
+    joint, q_max = EXACT_CASES[name]
+    _, beliefs = run(demo(joint, q_max, rest_s=0.3, hold_s=0.3))
+    check_exact(beliefs[-1], joint, q_max)
+    for b in beliefs:
+        check_belief_invariants(b)
+
+
+def test_no_motion_is_rigid() -> None:
+    joint = prismatic_joint([0.0, 0.0, 1.0], [0.1, 0.0, 0.5])
+    samples = demo(joint, 0.0, duration_s=1.5)
+    _, beliefs = run(samples)
+    assert beliefs[0].type == beliefs[10].type == "unknown"  # not enough evidence yet
+    b = beliefs[-1]
+    assert b.type == "rigid" and b.probabilities["rigid"] > 0.9
+    assert b.prismatic is None and b.revolute is None
+    np.testing.assert_array_equal(b.reference_pose, samples[0][1])
+
+
+def test_unknown_until_enough_motion_or_time() -> None:
+    joint = revolute_joint([0.0, 1.0, 0.0], [0.0, 0.0, 0.6], 0.1)
+    samples = demo(joint, 1.0, rest_s=0.5, duration_s=1.0)
+    _, beliefs = run(samples)
+    started = [i for i, b in enumerate(beliefs) if b.revolute is not None]
+    assert started and all(b.type == "unknown" for b in beliefs[:started[0]])
+    assert beliefs[-1].type == "revolute"
+
+
+def test_revolute_past_pi_tracks_continuously() -> None:
+    """300 degrees: q passes pi continuously and dq keeps the sign of the motion."""
+    joint = revolute_joint([0.2, -0.3, 1.0], [0.05, 0.0, 0.6], 0.08)
+    q_max = math.radians(300.0)
+    duration = 3.0
+    samples = demo(joint, q_max, duration_s=duration, hold_s=0.2)
+    _, beliefs = run(samples)
+    check_exact(beliefs[-1], joint, q_max)
+    s = canonical_axis_sign(joint.axis)
+    t = np.arange(len(samples)) / 30.0
+    q_true = q_max * min_jerk(t / duration)
+    v_true = np.gradient(q_true, t)
+    start = next(k for k, b in enumerate(beliefs) if b.revolute is not None)
+    qs = np.array([b.revolute.q for b in beliefs[start:] if b.revolute is not None])
+    dqs = np.array([b.revolute.dq for b in beliefs[start:] if b.revolute is not None])
+    np.testing.assert_allclose(qs, s * q_true[start:], atol=1e-3)  # continuous through pi
+    assert np.all(s * np.diff(qs) > -1e-6)
+    moving = np.abs(v_true[start:]) > 0.2
+    moving[:2] = False  # the velocity needs two corrections after the filter starts
+    assert np.all(dqs[moving] * s * v_true[start:][moving] > 0.0)  # the sign never flips
+    # A constant-velocity model lags an accelerating motion by about one frame (a < 3.5 rad/s^2).
+    np.testing.assert_allclose(dqs[moving], s * v_true[start:][moving], atol=0.15)
+
+
+@pytest.mark.parametrize("sign", [1.0, -1.0])
+def test_axis_along_z(sign: float) -> None:
+    axis = np.array([0.0, 0.0, sign])
+    for joint, q_max in ((revolute_joint(axis, [0.1, -0.05, 0.0], 0.07), 2.0),
+                         (prismatic_joint(axis, [0.1, -0.05, 0.6]), 0.1)):
+        _, beliefs = run(demo(joint, q_max, rest_s=0.2, hold_s=0.2))
+        for b in beliefs:
+            check_belief_invariants(b)
+        check_exact(beliefs[-1], joint, q_max)
+        params = beliefs[-1].revolute if joint.kind == "revolute" else beliefs[-1].prismatic
+        assert params is not None
+        np.testing.assert_allclose(params.axis, [0.0, 0.0, 1.0], atol=1e-4)
+
+
+def test_opposite_demonstrations_publish_the_same_axis() -> None:
+    joint = revolute_joint([0.3, 0.2, -0.9], [0.0, 0.1, 0.5], 0.1)
+    _, fwd = run(demo(joint, 1.2))
+    _, bwd = run(demo(joint, -1.2))
+    assert fwd[-1].revolute is not None and bwd[-1].revolute is not None
+    np.testing.assert_allclose(fwd[-1].revolute.axis, bwd[-1].revolute.axis, atol=1e-6)
+    assert fwd[-1].revolute.q == pytest.approx(-bwd[-1].revolute.q, abs=1e-4)
+
+
+# --------------------------------------------------------------------------------------------
+# Noise
+# --------------------------------------------------------------------------------------------
+
+NOISE = {"sigma_t": 0.003, "sigma_r": math.radians(1.0)}
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_noisy_revolute_axis_within_3_degrees(seed: int) -> None:
+    joint = revolute_joint([0.1, 1.0, 0.2], [0.2, -0.1, 0.7], 0.10)
+    _, beliefs = run(demo(joint, math.pi / 2, rest_s=0.3, hold_s=0.3, seed=seed, **NOISE))
+    b = beliefs[-1]
+    assert b.type == "revolute" and b.revolute is not None
+    assert math.degrees(angle_between(b.revolute.axis, joint.axis)) < 3.0
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_noisy_prismatic_axis_within_3_degrees(seed: int) -> None:
+    joint = prismatic_joint([0.3, -0.2, 0.9], [0.1, 0.05, 0.6])
+    _, beliefs = run(demo(joint, 0.10, rest_s=0.3, hold_s=0.3, seed=seed, **NOISE))
+    b = beliefs[-1]
+    assert b.type == "prismatic" and b.prismatic is not None
+    assert math.degrees(angle_between(b.prismatic.axis, joint.axis)) < 3.0
+
+
+def test_free_motion_is_disconnected() -> None:
+    rng = np.random.default_rng(0)
+    est = KinematicEstimator()
+    T = np.eye(4)
+    T[:3, 3] = (0.0, 0.0, 0.6)
+    xi = np.zeros(6)
+    for k in range(120):
+        xi = 0.9 * xi + rng.normal(scale=[0.05, 0.05, 0.05, 0.3, 0.3, 0.3])
+        T = se3_exp(xi / 30.0) @ T
+        b = est.update(10**9 + k * 33_333_333, T, 1e-6 * np.eye(6))
+    assert b.type == "disconnected" and b.probabilities["disconnected"] > 0.9
+
+
+# --------------------------------------------------------------------------------------------
+# Properties on random joints (noise-free)
+# --------------------------------------------------------------------------------------------
+
+unit_vectors = st.tuples(*[st.floats(-1.0, 1.0)] * 3).filter(
+    lambda v: np.linalg.norm(v) > 0.2).map(lambda v: unit(np.array(v)))
+points = st.tuples(*[st.floats(-0.3, 0.3)] * 3).map(np.array)
+rotvecs = st.tuples(*[st.floats(-3.0, 3.0)] * 3).map(np.array)
+
+
+@settings(max_examples=12, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(axis=unit_vectors, point=points, hand=rotvecs, radius=st.floats(0.02, 0.2),
+       q_deg=st.floats(30.0, 200.0), sign=st.sampled_from([-1.0, 1.0]))
+def test_random_revolute_joints(axis: Array, point: Array, hand: Array, radius: float,
+                                q_deg: float, sign: float) -> None:
+    joint = revolute_joint(axis, point + np.array([0.0, 0.0, 0.6]), radius, hand_rotvec=hand)
+    q_max = sign * math.radians(q_deg)
+    _, beliefs = run(demo(joint, q_max, duration_s=1.5, rest_s=0.1, hold_s=0.1))
+    check_exact(beliefs[-1], joint, q_max, tol=1e-3)
+
+
+@settings(max_examples=12, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(axis=unit_vectors, start=points, hand=rotvecs, q_max=st.floats(0.04, 0.25),
+       sign=st.sampled_from([-1.0, 1.0]))
+def test_random_prismatic_joints(axis: Array, start: Array, hand: Array, q_max: float,
+                                 sign: float) -> None:
+    joint = prismatic_joint(axis, start + np.array([0.0, 0.0, 0.6]), hand_rotvec=hand)
+    _, beliefs = run(demo(joint, sign * q_max, duration_s=1.5, rest_s=0.1, hold_s=0.1))
+    check_exact(beliefs[-1], joint, sign * q_max, tol=1e-3)
+
+
+# --------------------------------------------------------------------------------------------
+# Robustness, snapshot, memory
+# --------------------------------------------------------------------------------------------
+
+
+def test_bad_inputs_are_counted_not_raised() -> None:
+    joint = revolute_joint([0.0, 1.0, 0.0], [0.0, 0.0, 0.6], 0.1)
+    samples = demo(joint, 0.5, duration_s=0.5)
+    est = KinematicEstimator()
+    for s in samples[:5]:
+        est.update(*s)
+    before = est.belief
+    stamp, T, C = samples[5]
+    bad_T = T.copy()
+    bad_T[0, 0] = np.nan
+    skewed = T.copy()
+    skewed[:3, :3] *= 1.01
+    reflected = T.copy()
+    reflected[:3, 0] *= -1.0
+    negative = C.copy()
+    negative[2, 2] = -1.0
+    cases: list[tuple[Any, Any, Any, str]] = [
+        (stamp, bad_T, C, "non_finite"),
+        (stamp, T, np.full((6, 6), np.inf), "non_finite"),
+        (stamp, T[:3], C, "bad_shape"),
+        (stamp, T, C[:3, :3], "bad_shape"),
+        (stamp, skewed, C, "invalid_pose"),
+        (stamp, reflected, C, "invalid_pose"),
+        (stamp, T, negative, "invalid_covariance"),
+        (float(stamp), T, C, "invalid_stamp"),
+        (True, T, C, "invalid_stamp"),
+        (stamp, "pose", C, "invalid_value"),
+        (samples[4][0], T, C, "duplicate_stamp"),
+        (samples[2][0], T, C, "out_of_order"),
+    ]
+    for stamp_ns, pose, cov, _ in cases:
+        assert est.update(stamp_ns, pose, cov) is before
+    expected: dict[str, int] = {}
+    for *_, reason in cases:
+        expected[reason] = expected.get(reason, 0) + 1
+    assert est.rejected == expected
+    assert est.belief.updates == 5
+    after = est.update(*samples[5])
+    assert after.updates == 6
+
+
+def test_reset_starts_a_new_demonstration() -> None:
+    joint, q_max = EXACT_CASES["prismatic"]
+    samples = demo(joint, q_max)
+    est, _ = run(samples)
+    est.update(samples[-1][0] + 1, np.eye(4) * np.nan, np.eye(6))
+    est.reset()
+    assert est.belief.updates == 0 and est.belief.type == "unknown"
+    assert est.belief.prismatic is None
+    assert est.rejected == {"non_finite": 1}  # diagnostics are cumulative
+    b = est.update(samples[3][0], samples[3][1], samples[3][2])  # an older stamp is fine now
+    np.testing.assert_array_equal(b.reference_pose, samples[3][1])
+
+
+def _allowed(value: Any) -> bool:
+    if isinstance(value, dict):
+        return all(isinstance(k, str) and _allowed(v) for k, v in value.items())
+    if isinstance(value, list):
+        return all(_allowed(v) for v in value)
+    return value is None or isinstance(value, (str, int, float, bool, np.ndarray))
+
+
+def _through_wire(value: Any) -> Any:
+    """What a msgpack/JSON round trip can give back: arrays as fresh arrays from lists."""
+    if isinstance(value, dict):
+        return {k: _through_wire(v) for k, v in value.items()}
+    if isinstance(value, np.ndarray):
+        return np.array(value.tolist(), dtype=value.dtype)
+    return copy.deepcopy(value)
+
+
+def _assert_same_belief(a: KinematicBelief, b: KinematicBelief) -> None:
+    assert a.type == b.type and a.updates == b.updates and a.stamp_ns == b.stamp_ns
+    assert a.probabilities == b.probabilities
+    np.testing.assert_array_equal(a.reference_pose, b.reference_pose)
+    for pa, pb in ((a.prismatic, b.prismatic), (a.revolute, b.revolute)):
+        assert (pa is None) == (pb is None)
+        if pa is not None and pb is not None:
+            assert pa.q == pb.q and pa.dq == pb.dq
+            np.testing.assert_array_equal(pa.axis, pb.axis)
+            np.testing.assert_array_equal(pa.covariance, pb.covariance)
+
+
+@pytest.mark.parametrize("split", [0, 1, 25, 70])
+def test_snapshot_round_trip_continues_identically(split: int) -> None:
+    joint = revolute_joint([0.1, 1.0, 0.2], [0.2, -0.1, 0.7], 0.10)
+    samples = demo(joint, math.pi / 2, rest_s=0.3, hold_s=0.3, seed=3, **NOISE)
+    cfg = KinematicsConfig()
+    est = KinematicEstimator(cfg, frame_id="world")
+    for s in samples[:split]:
+        est.update(*s)
+    est.update(samples[1][0], samples[1][1], samples[1][2]) if split > 2 else None  # a rejection
+    snap = est.to_snapshot()
+    assert _allowed(snap)
+    restored = KinematicEstimator.from_snapshot(_through_wire(snap), cfg)
+    assert restored.frame_id == "world" and restored.rejected == est.rejected
+    _assert_same_belief(restored.belief, est.belief)
+    for s in samples[split:]:
+        _assert_same_belief(restored.update(*s), est.update(*s))
+
+
+def test_ten_minute_stream_keeps_memory_bounded() -> None:
+    """30 Hz for 10 minutes of back-and-forth turning: the history stays within its capacity."""
+    cfg = KinematicsConfig()
+    joint = revolute_joint([0.0, 1.0, 0.1], [0.1, 0.0, 0.6], 0.1)
+    est = KinematicEstimator(cfg)
+    cov = 1e-6 * np.eye(6)
+    screw_u, screw_p = joint.axis, joint.closest_point()
+    n = 10 * 60 * 30
+    for k in range(n):
+        q = 0.8 * math.sin(2.0 * math.pi * k / 150.0) ** 2
+        est.update(10**9 + k * 33_333_333, revolute_delta(screw_u, screw_p, q) @ joint.T_ref, cov)
+    h = est.selector.history
+    assert h.n <= cfg.history_capacity and h.frames_seen == n
+    assert h.frame[-1] > n - 2 * h.stride and h.frame[0] == 0
+    snap = est.to_snapshot()
+    assert snap["selector"]["history"]["data"].shape[0] <= cfg.history_capacity
+    b = est.belief
+    assert b.type == "revolute" and b.updates == n
+    check_belief_invariants(b)
+
+
+def test_long_tracking_gap_keeps_the_joint_value() -> None:
+    """After a 60 s gap the velocity is not extrapolated onto another 2 pi branch."""
+    joint = revolute_joint([0.1, 1.0, 0.2], [0.2, -0.1, 0.7], 0.10)
+    samples = demo(joint, math.pi / 2, rest_s=0.3, hold_s=0.3)
+    est = KinematicEstimator()
+    for k, (stamp, T, C) in enumerate(samples):
+        b = est.update(stamp + (60 * 10**9 if k >= 40 else 0), T, C)
+        check_belief_invariants(b)
+    check_exact(b, joint, math.pi / 2)
+
+
+def test_config_defaults_and_checks() -> None:
+    cfg = KinematicsConfig()
+    assert (cfg.prismatic_initial_variance, cfg.revolute_initial_variance) == (3.0, 1.0)
+    assert (cfg.prismatic_axis_noise_rad2_per_s3, cfg.prismatic_q_noise_m2_per_s3,
+            cfg.prismatic_qdot_noise_m2_per_s3) == (2.55, 0.7, 75.0)
+    assert (cfg.revolute_axis_noise_rad2_per_s3, cfg.revolute_point_noise_m2_per_s3,
+            cfg.revolute_q_noise_rad2_per_s3, cfg.revolute_qdot_noise_rad2_per_s3) == (
+        2.55, 0.3, 5.1, 75.0)
+    assert (cfg.likelihood_sample_num, cfg.likelihood_sigma_translation_m,
+            cfg.likelihood_sigma_rotation_rad) == (100, 0.05, 0.2)
+    assert (cfg.rigid_max_translation_m, cfg.rigid_max_rotation_rad,
+            cfg.revolute_max_joint_distance_m) == (0.05, 0.1, 0.5)
+    assert cfg.prior_disconnected * cfg.disconnected_density == pytest.approx(0.8)
+    for bad in ({"likelihood_sample_num": 0}, {"history_capacity": 101},
+                {"history_capacity": 100}, {"prior_disconnected": 0.0},
+                {"likelihood_aggregation": "median"}, {"prismatic_initial_variance": -1.0},
+                {"max_prediction_dt_s": float("nan")}):
+        with pytest.raises(ValueError):
+            KinematicsConfig(**bad)  # type: ignore[arg-type]
