@@ -1,0 +1,247 @@
+"""Body EKF: Jacobians by finite differences, information form = textbook stacked update,
+likelihoods, gates, model choice."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.stats import multivariate_normal  # type: ignore[import-untyped]
+
+from services.common.se3 import se3_exp, se3_inverse, se3_log, transform_points
+from services.tracker.body import (
+    HandBodyEkf,
+    Prediction,
+    body_noise_matrices,
+    information_sums,
+    innovation_covariance,
+    log_likelihoods,
+    measurement_jacobians,
+    merge_pose,
+    posterior_residual_passes,
+    predicted_points,
+    prior_gate_passes,
+    select_and_gate,
+)
+from tests.tracker.handgen import HAND
+
+RNG_SEED = 11
+
+
+def random_spd(rng: np.random.Generator, n: int, scale: float) -> np.ndarray:
+    A = rng.normal(size=(n, n))
+    spd: np.ndarray = scale * (A @ A.T / n + 0.1 * np.eye(n))
+    return spd
+
+
+def make_ekf(rng: np.random.Generator) -> HandBodyEkf:
+    T = se3_exp(np.array([0.1, -0.05, 0.6, 0.3, -0.2, 0.4]))
+    P0, Q = body_noise_matrices((0.05, 0.2, 0.1, 0.2), (0.75, 3.0, 2.4, 4.8))
+    ekf = HandBodyEkf(T, np.array([0.2, -0.1, 0.05, 0.8, -1.5, 0.4]), P0, Q, 1.0 / 30.0)
+    ekf.P = random_spd(rng, 12, 0.05)
+    return ekf
+
+
+def test_measurement_jacobian_matches_finite_differences() -> None:
+    rng = np.random.default_rng(RNG_SEED)
+    T = se3_exp(rng.normal(size=6))
+    p = rng.normal(size=3)
+
+    def h(delta: np.ndarray) -> np.ndarray:
+        point: np.ndarray = transform_points(se3_exp(delta) @ T, p[None])[0]
+        return point
+
+    H = measurement_jacobians(h(np.zeros(6))[None])[0]
+    eps = 1e-6
+    J = np.column_stack([(h(eps * e) - h(-eps * e)) / (2 * eps) for e in np.eye(6)])
+    np.testing.assert_allclose(H, J, atol=1e-9)
+
+
+def test_constant_velocity_transition_matches_finite_differences() -> None:
+    rng = np.random.default_rng(RNG_SEED)
+    ekf = make_ekf(rng)
+    dt = 0.1  # large enough for Ad(Exp(dt xi)) and J_l(dt xi) to differ from I
+    T_hat, xi_hat = ekf.T.copy(), ekf.xi.copy()
+    _, F = ekf.transition(dt)
+
+    def propagate(dx: np.ndarray) -> np.ndarray:
+        T = se3_exp(dx[:6]) @ T_hat
+        xi = xi_hat + dx[6:]
+        T_next = se3_exp(dt * xi) @ T
+        T_ref = se3_exp(dt * xi_hat) @ T_hat
+        return np.concatenate([se3_log(T_next @ se3_inverse(T_ref)), xi - xi_hat])
+
+    eps = 1e-6
+    J = np.column_stack([(propagate(eps * e) - propagate(-eps * e)) / (2 * eps)
+                         for e in np.eye(12)])
+    np.testing.assert_allclose(F, J, atol=1e-7)
+
+
+def test_information_form_update_equals_textbook_stacked_update() -> None:
+    rng = np.random.default_rng(RNG_SEED)
+    ekf = make_ekf(rng)
+    prior = ekf.predict(1.0 / 30.0)[1]
+    pb = HAND[1:] - HAND[1:].mean(axis=0)
+    T_true = se3_exp(rng.normal(scale=0.02, size=6)) @ prior.T
+    z = transform_points(T_true, pb) + rng.normal(scale=0.01, size=pb.shape)
+    r = rng.uniform(0.01, 0.06, size=20)
+
+    ekf.update(prior, z, pb, r)
+
+    n = pb.shape[0]
+    q = predicted_points(prior.T, pb)
+    H = np.zeros((3 * n, 12))
+    H[:, :6] = measurement_jacobians(q).reshape(3 * n, 6)
+    R = np.diag(np.repeat(r, 3))
+    S = H @ prior.P @ H.T + R
+    np.testing.assert_allclose(S, innovation_covariance(prior, pb, r), atol=1e-14)
+    K = np.linalg.solve(S, H @ prior.P).T  # K = P H' S^-1
+    dx = K @ (z - q).ravel()
+    I_KH = np.eye(12) - K @ H
+    P_post = I_KH @ prior.P @ I_KH.T + K @ R @ K.T
+    np.testing.assert_allclose(ekf.T, se3_exp(dx[:6]) @ prior.T, atol=1e-12)
+    np.testing.assert_allclose(ekf.xi, prior.xi + dx[6:], atol=1e-12)
+    np.testing.assert_allclose(ekf.P, P_post, atol=1e-12)
+    assert np.linalg.eigvalsh(ekf.P).min() > 0.0
+
+
+def test_stacked_log_likelihood_matches_dense_gaussian() -> None:
+    rng = np.random.default_rng(RNG_SEED)
+    ekf = make_ekf(rng)
+    preds = ekf.predict(1.0 / 30.0)
+    pb = HAND[1:] - HAND[1:].mean(axis=0)
+    z = transform_points(preds[0].T, pb) + rng.normal(scale=0.05, size=pb.shape)
+    r = rng.uniform(0.01, 0.06, size=20)
+    T = np.stack([p.T for p in preds])
+    q = predicted_points(T, pb)
+    A, b, c = information_sums(q, z[None] - q, 1.0 / r)
+    P = np.stack([p.P[:6, :6] for p in preds])
+    ll = log_likelihoods(P, A, b, c, float(3 * np.log(r).sum()), 20)
+    for m, p in enumerate(preds):
+        S = innovation_covariance(p, pb, r)
+        dense = multivariate_normal(mean=np.zeros(60), cov=S).logpdf((z - q[m]).ravel())
+        assert ll[m] == pytest.approx(dense, rel=1e-10, abs=1e-8)
+
+
+def test_leave_one_out_gate_equals_brute_force_refits() -> None:
+    rng = np.random.default_rng(RNG_SEED)
+    ekf = make_ekf(rng)
+    prior = ekf.predict(1.0 / 30.0)[0]
+    P = prior.P[:6, :6]
+    pb = HAND[1:] - HAND[1:].mean(axis=0)
+    z = transform_points(se3_exp(rng.normal(scale=0.01, size=6)) @ prior.T, pb)
+    z += rng.normal(scale=0.004, size=z.shape)
+    z[4] += [0.0, 0.05, 0.0]
+    r = np.full(20, 1e-4)
+    q = predicted_points(prior.T, pb)
+    y = z - q
+    H = measurement_jacobians(q)
+    A_all, b_all, _ = information_sums(q[None], y[None], 1.0 / r)
+    dist = np.empty(20)
+    for i in range(20):  # refit without landmark i, predict it, Mahalanobis distance
+        w = 1.0 / r
+        w[i] = 0.0
+        A, b, _ = information_sums(q[None], y[None], w)
+        Lam = np.linalg.inv(P) + A[0]
+        delta = np.linalg.solve(Lam, b[0])
+        S = H[i] @ np.linalg.inv(Lam) @ H[i].T + r[i] * np.eye(3)
+        e = y[i] - H[i] @ delta
+        dist[i] = np.sqrt(e @ np.linalg.solve(S, e))
+    assert dist[4] > 4.0  # the injected 5 cm jump stands out ...
+    assert np.delete(dist, 4).max() < 2.0  # ... from 4 mm noise against a 1 cm sigma
+    for thr in (1.0, 2.0, 3.0, 5.0):
+        passes = posterior_residual_passes(q, y, r, P, A_all[0], b_all[0], thr)
+        np.testing.assert_array_equal(passes, dist < thr)
+
+
+def test_prior_gate_equals_explicit_distances() -> None:
+    rng = np.random.default_rng(RNG_SEED)
+    ekf = make_ekf(rng)
+    preds = ekf.predict(1.0 / 30.0)
+    pb = HAND[1:] - HAND[1:].mean(axis=0)
+    z = transform_points(preds[0].T, pb) + rng.normal(scale=0.3, size=pb.shape)
+    r = rng.uniform(0.01, 0.06, size=20)
+    T = np.stack([p.T for p in preds])
+    P = np.stack([p.P[:6, :6] for p in preds])
+    q = predicted_points(T, pb)
+    y = z[None] - q
+    H = measurement_jacobians(q)
+    S = H @ P[:, None] @ H.transpose(0, 1, 3, 2) + r[:, None, None] * np.eye(3)
+    d = np.sqrt(np.einsum("mni,mni->mn", y, np.linalg.solve(S, y[..., None])[..., 0]))
+    for thr in (0.1, 0.25, 0.5):
+        np.testing.assert_array_equal(prior_gate_passes(q, y, P, r, thr), d < thr)
+
+
+def test_merge_pose_keeps_blocks_and_stays_positive_definite() -> None:
+    rng = np.random.default_rng(RNG_SEED)
+    Pv = random_spd(rng, 12, 1.0)
+    Pp = random_spd(rng, 6, 0.01)
+    P = merge_pose(Pv, Pp)
+    np.testing.assert_allclose(P[:6, :6], Pp)
+    np.testing.assert_allclose(P[6:, 6:], Pv[6:, 6:])
+    np.testing.assert_allclose(P, P.T)
+    assert np.linalg.eigvalsh(P).min() > 0.0
+
+
+def test_repeated_exact_updates_converge_to_the_truth() -> None:
+    rng = np.random.default_rng(RNG_SEED)
+    ekf = make_ekf(rng)
+    pb = HAND[1:] - HAND[1:].mean(axis=0)
+    T_true = se3_exp(np.array([0.03, -0.02, 0.01, 0.2, 0.1, -0.15])) @ ekf.T
+    for _ in range(30):
+        prior = ekf.predict(1.0 / 30.0)[0]
+        ekf.update(prior, transform_points(T_true, pb), pb, np.full(20, 0.04))
+    assert np.linalg.norm(se3_log(T_true @ se3_inverse(ekf.T))) < 1e-10
+
+
+def _predictions_and_landmarks(rng: np.random.Generator, move: np.ndarray
+                               ) -> tuple[list[Prediction], np.ndarray, np.ndarray, np.ndarray]:
+    """A moving body (twist ``move`` per frame, known to the filter) and its landmarks."""
+    T = se3_exp(np.array([0.0, 0.0, 0.5, 0.0, 0.0, 0.0]))
+    _, Q = body_noise_matrices((1e-6, 1e-5, 1e-2, 1e-1), (1e-6, 1e-5, 1e-2, 1e-1))
+    dt = 1.0 / 30.0
+    ekf = HandBodyEkf(T, move / dt, 1e-6 * np.eye(12), Q, dt)
+    preds = ekf.predict(dt)
+    pb = HAND[1:] - HAND[1:].mean(axis=0)
+    r = np.full(20, 1e-5)
+    return preds, pb, r, T
+
+
+def test_the_model_whose_mean_explains_the_landmarks_wins() -> None:
+    rng = np.random.default_rng(RNG_SEED)
+    move = np.array([0.01, 0.0, 0.0, 0.0, 0.05, 0.0])  # 1 cm and 3 deg in one frame
+    preds, pb, r, T = _predictions_and_landmarks(rng, move)
+    noise = rng.normal(scale=0.002, size=pb.shape)
+    moved = transform_points(se3_exp(move) @ T, pb) + noise
+    still = transform_points(T, pb) + noise
+    step = select_and_gate(preds, moved, pb, r, threshold=4.0, gate=True)
+    assert preds[step.model].model == "constant_velocity" and step.accepted.all()
+    step = select_and_gate(preds, still, pb, r, threshold=4.0, gate=True)
+    assert preds[step.model].model == "static" and step.accepted.all()
+
+
+def test_kinematic_prediction_wins_when_right_and_loses_when_wrong() -> None:
+    rng = np.random.default_rng(RNG_SEED)
+    move = np.array([0.01, 0.0, 0.0, 0.0, 0.05, 0.0])
+    _, pb, r, T = _predictions_and_landmarks(rng, np.zeros(6))
+    _, Q = body_noise_matrices((1e-6, 1e-5, 1e-2, 1e-1), (1e-6, 1e-5, 1e-2, 1e-1))
+    dt = 1.0 / 30.0
+    ekf = HandBodyEkf(T, np.zeros(6), 1e-6 * np.eye(12), Q, dt)
+    z = transform_points(se3_exp(move) @ T, pb) + rng.normal(scale=0.002, size=pb.shape)
+    right = ekf.predict(dt, (se3_exp(move) @ T, 1e-6 * np.eye(6)))
+    np.testing.assert_allclose(right[2].xi, move / dt, atol=1e-12)  # displacement / dt
+    step = select_and_gate(right, z, pb, r, threshold=4.0, gate=True)
+    assert right[step.model].model == "kinematic"
+    wrong = ekf.predict(dt, (se3_exp(-move) @ T, 1e-6 * np.eye(6)))
+    step = select_and_gate(wrong, z, pb, r, threshold=4.0, gate=True)
+    assert wrong[step.model].model != "kinematic"
+
+
+def test_gates_reject_a_jumped_landmark_and_ablation_keeps_it() -> None:
+    rng = np.random.default_rng(RNG_SEED)
+    preds, pb, r, T = _predictions_and_landmarks(rng, np.zeros(6))
+    z = transform_points(T, pb) + rng.normal(scale=0.003, size=pb.shape)
+    z[7] += [0.05, 0.0, 0.0]
+    step = select_and_gate(preds, z, pb, r, threshold=4.0, gate=True)
+    assert np.flatnonzero(step.rejected).tolist() == [7]
+    step = select_and_gate(preds, z, pb, r, threshold=4.0, gate=False)
+    assert step.accepted.all()

@@ -1,0 +1,210 @@
+"""Landmark filter bank: batched = per-landmark textbook KF; gating, loss, re-init, saliency."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from services.tracker.config import TrackerConfig
+from services.tracker.landmarks import (
+    LandmarkFilterBank,
+    body_landmark_mask,
+    body_measurement_variances,
+    inv_sym3,
+    missing_mask,
+)
+
+
+class ReferenceKf:
+    """One landmark's 6-state KF written the textbook way (full matrices, no batching)."""
+
+    def __init__(self, config: TrackerConfig, z: np.ndarray) -> None:
+        self.c = config
+        self.x = np.concatenate([z, np.zeros(3)])
+        self.P = np.diag([config.p0_lm_position_m2] * 3 + [config.p0_lm_velocity_m2ps2] * 3)
+
+    def predict(self, dt: float) -> None:
+        F = np.eye(6)
+        F[:3, 3:] = dt * np.eye(3)
+        Q = np.diag([self.c.q_lm_position_m2] * 3 + [self.c.q_lm_velocity_m2ps2] * 3)
+        self.x = F @ self.x
+        self.P = F @ self.P @ F.T + Q * dt / self.c.nominal_dt_s
+
+    def update(self, z: np.ndarray, gate: bool) -> bool:
+        """Returns False if gated out."""
+        H = np.hstack([np.eye(3), np.zeros((3, 3))])
+        R = self.c.r_lm_m2 * np.eye(3)
+        y = z - H @ self.x
+        S = H @ self.P @ H.T + R
+        if gate and np.sqrt(y @ np.linalg.solve(S, y)) >= self.c.mahalanobis_lm:
+            return False
+        K = self.P @ H.T @ np.linalg.inv(S)
+        self.x = self.x + K @ y
+        IKH = np.eye(6) - K @ H
+        self.P = IKH @ self.P @ IKH.T + K @ R @ K.T
+        return True
+
+
+def test_batched_bank_equals_per_landmark_reference_kf() -> None:
+    """42 rows (two hands) through 200 frames of random motion, gaps, outliers and jitter in dt."""
+    rng = np.random.default_rng(7)
+    config = TrackerConfig()
+    n = 42
+    bank = LandmarkFilterBank(n, config)
+    refs: list[ReferenceKf | None] = [None] * n
+    truth = rng.normal(scale=0.1, size=(n, 3))
+    vel = rng.normal(scale=0.1, size=(n, 3))
+    for k in range(200):
+        dt = config.nominal_dt_s * (1 + (k % 7 == 0))  # a dropped frame now and then
+        truth += vel * dt
+        z = truth + rng.normal(scale=0.02, size=(n, 3))
+        z[rng.random(n) < 0.1] += 0.3  # outliers beyond the gate
+        z[rng.random(n) < 0.15] = np.nan  # missing
+        if k:
+            bank.predict(dt)
+            for r in refs:
+                if r is not None:
+                    r.predict(dt)
+        upd = bank.update(z, config.r_lm_m2)
+        for i in range(n):
+            r = refs[i]
+            measured = bool(np.isfinite(z[i]).all())
+            if r is None:
+                if measured:
+                    refs[i] = ReferenceKf(config, z[i])
+                    assert upd.fresh[i]
+                continue
+            accepted = r.update(z[i], gate=True) if measured else False
+            assert upd.rejected[i] == (measured and not accepted)
+            assert upd.fresh[i] == accepted
+            if 3 * r.P[0, 0] >= config.lm_loss_trace_m2:
+                refs[i] = None
+                assert upd.dropped[i] and not bank.alive[i]
+                continue
+            assert bank.alive[i]
+            np.testing.assert_allclose(bank.x[i], r.x, atol=1e-12)
+            np.testing.assert_allclose(bank.covariance(i), r.P, atol=1e-12)
+
+
+def test_outlier_skips_correction_then_landmark_is_lost_and_restarts() -> None:
+    config = TrackerConfig()
+    bank = LandmarkFilterBank(2, config)
+    z = np.zeros((2, 3))
+    bank.update(z, config.r_lm_m2)
+    for _ in range(30):
+        bank.predict(config.nominal_dt_s)
+        bank.update(z, config.r_lm_m2)
+    bank.predict(config.nominal_dt_s)
+    x_pred = bank.x.copy()
+    jump = z.copy()
+    jump[1] = [0.12, 0.0, 0.0]  # 12 cm: beyond the ~9 cm Table-I gate
+    upd = bank.update(jump, config.r_lm_m2)
+    assert upd.fresh.tolist() == [True, False]
+    assert upd.rejected.tolist() == [False, True]
+    assert upd.mahalanobis[1] >= config.mahalanobis_lm > upd.mahalanobis[0]
+    # Correction skipped: the covariance grew by one frame of Q and crossed the loss threshold.
+    assert upd.dropped.tolist() == [False, True]
+    assert np.isnan(bank.positions()[1]).all()
+    np.testing.assert_array_equal(bank.x[0], x_pred[0])  # z == prediction: nothing moves
+    # The next measurement restarts the filter there, with P0 and the given start velocity.
+    bank.predict(config.nominal_dt_s)
+    restart = np.array([[0.0, 0.0, 0.0], [0.01, 0.02, 0.03]])
+    upd = bank.update(restart, config.r_lm_m2, v_start=np.full((2, 3), 0.5))
+    assert upd.fresh.all() and bank.alive.all()
+    np.testing.assert_array_equal(bank.x[1], [0.01, 0.02, 0.03, 0.5, 0.5, 0.5])
+    np.testing.assert_allclose(bank.covariance(1), np.diag([0.09] * 3 + [0.06] * 3))
+
+
+def test_a_small_jump_inside_the_gate_is_absorbed() -> None:
+    config = TrackerConfig()
+    bank = LandmarkFilterBank(1, config)
+    bank.update(np.zeros((1, 3)), config.r_lm_m2)
+    for _ in range(30):
+        bank.predict(config.nominal_dt_s)
+        bank.update(np.zeros((1, 3)), config.r_lm_m2)
+    bank.predict(config.nominal_dt_s)
+    upd = bank.update(np.array([[0.05, 0.0, 0.0]]), config.r_lm_m2)
+    assert upd.fresh[0] and not upd.rejected[0]
+    assert bank.x[0, 0] == pytest.approx(0.05 * 0.776, abs=1e-3)  # steady-state gain
+
+
+def test_ablation_accepts_everything() -> None:
+    config = TrackerConfig()
+    bank = LandmarkFilterBank(1, config)
+    bank.update(np.zeros((1, 3)), config.r_lm_m2)
+    bank.predict(config.nominal_dt_s)
+    upd = bank.update(np.array([[1.0, 0.0, 0.0]]), config.r_lm_m2, gate=False)
+    assert upd.fresh[0] and not upd.rejected[0]
+
+
+def test_missing_measurements_grow_the_covariance_linearly_in_dt() -> None:
+    config = dataclasses.replace(TrackerConfig(), lm_loss_trace_m2=100.0)
+    one, two = LandmarkFilterBank(1, config), LandmarkFilterBank(1, config)
+    for bank in (one, two):
+        bank.update(np.zeros((1, 3)), config.r_lm_m2)
+    missing = np.full((1, 3), np.nan)
+    one.predict(config.nominal_dt_s)
+    one.update(missing, config.r_lm_m2)
+    one.predict(config.nominal_dt_s)
+    one.update(missing, config.r_lm_m2)
+    two.predict(2 * config.nominal_dt_s)  # the same interval in one step
+    two.update(missing, config.r_lm_m2)
+    # Velocity noise adds q_v dt either way; position noise differs only by the q_v dt^3 term.
+    assert two.vv[0] == pytest.approx(one.vv[0])
+    assert two.pp[0] == pytest.approx(one.pp[0], rel=1e-3)
+    assert one.alive[0] and two.alive[0]
+
+
+def test_reject_rolls_back_to_the_prediction() -> None:
+    config = TrackerConfig()
+    bank = LandmarkFilterBank(2, config)
+    bank.update(np.zeros((2, 3)), config.r_lm_m2)
+    for _ in range(10):
+        bank.predict(config.nominal_dt_s)
+        bank.update(np.zeros((2, 3)), config.r_lm_m2)
+    bank.predict(config.nominal_dt_s)
+    x_pred, pp_pred = bank.x.copy(), bank.pp.copy()
+    bank.update(np.full((2, 3), 0.02), config.r_lm_m2)
+    dropped = bank.reject(np.array([False, True]))
+    np.testing.assert_array_equal(bank.x[1], x_pred[1])
+    assert bank.pp[1] == pp_pred[1]
+    assert dropped[1] and not bank.alive[1]  # skipping one Table-I correction loses it
+    assert bank.alive[0] and bank.x[0, 0] > 0.0
+    # A filter started by the rejected measurement itself is removed, whatever the threshold.
+    lenient = LandmarkFilterBank(1, dataclasses.replace(config, lm_loss_trace_m2=1e9))
+    lenient.update(np.zeros((1, 3)), config.r_lm_m2)
+    assert lenient.reject(np.array([True]))[0] and not lenient.alive[0]
+
+
+def test_visibility_and_nan_make_landmarks_missing() -> None:
+    pts = np.zeros((21, 3))
+    pts[3, 1] = np.nan
+    pts[4, 2] = np.inf
+    vis = np.ones(21)
+    vis[5] = 0.005
+    vis[6] = 0.006
+    vis[7] = np.nan
+    assert np.flatnonzero(missing_mask(pts, vis, 0.006)).tolist() == [3, 4, 5, 7]
+
+
+def test_saliency_scales_filter_covariance_and_ablation_is_uniform() -> None:
+    config = TrackerConfig()
+    pp = np.linspace(0.01, 0.05, 21)
+    r = body_measurement_variances(pp, config)
+    np.testing.assert_allclose(r, np.asarray(config.saliency_factors()) * pp)
+    assert r[8] == 0.5 * pp[8] and r[2] == 1.5 * pp[2] and r[6] == pp[6]
+    assert not body_landmark_mask(config)[0] and body_landmark_mask(config)[1:].all()
+    ablation = dataclasses.replace(config, use_uncertainty_models=False)
+    np.testing.assert_array_equal(body_measurement_variances(pp, ablation), 0.05)
+    assert body_landmark_mask(ablation).all()
+
+
+def test_inv_sym3_matches_numpy() -> None:
+    rng = np.random.default_rng(0)
+    A = rng.normal(size=(50, 3, 3))
+    S = A @ A.transpose(0, 2, 1) + 0.1 * np.eye(3)
+    inv, det = inv_sym3(S)
+    np.testing.assert_allclose(inv, np.linalg.inv(S), rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(det, np.linalg.det(S), rtol=1e-10)
