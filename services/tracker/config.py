@@ -92,6 +92,11 @@ class TrackerConfig:
     # Re-initialisation: drop the body after this long without a correction.
     reinit_after_s: float = 0.5
 
+    # Publish covariances in metres/radians: scale by the smoothed a-posteriori variance of unit
+    # weight of the body fit (Table I's covariances hold only up to a global scale).
+    calibrate_covariance: bool = True
+    variance_factor_smoothing: float = 0.1  # per-frame EMA weight of the variance factor
+
     # Ablation switch: False = uniform R_rb, no saliency factors (wrist used), no gating,
     # uniform RANSAC sampling and residual weights.
     use_uncertainty_models: bool = True
@@ -148,6 +153,9 @@ class TrackerConfig:
                              f"got {self.hand_selection!r}")
         if self.seed < 0:
             raise ValueError(f"seed must be >= 0, got {self.seed}")
+        if not 0.0 < self.variance_factor_smoothing <= 1.0:
+            raise ValueError("variance_factor_smoothing must be in (0, 1], got "
+                             f"{self.variance_factor_smoothing}")
 
     def saliency_factors(self) -> tuple[float, ...]:
         """s_k per landmark in MediaPipe order (21 values); the wrist's entry is 1.0 (unused)."""

@@ -23,6 +23,7 @@ dropped and re-initialised after ``reinit_after_s`` without a correction.
 
 from __future__ import annotations
 
+import math
 from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -164,6 +165,7 @@ class HandTracker:
         self._ekf: HandBodyEkf | None = None
         self._points_body: Array | None = None
         self._body_stamp_ns = 0
+        self._variance_factor: float | None = None
 
     @property
     def initialized(self) -> bool:
@@ -316,7 +318,7 @@ class HandTracker:
             stamp_ns=stamp_ns, frame_id=self._frame_id, initialized=ekf is not None,
             pose=np.eye(4) if ekf is None else ekf.T.copy(),
             twist=np.zeros(6) if ekf is None else ekf.xi.copy(),
-            covariance=self._P0_rb.copy() if ekf is None else ekf.P.copy(),
+            covariance=self._P0_rb.copy() if ekf is None else ekf.P * self.variance_factor,
             motion_model=motion_model,
             landmark_points=positions.astype(np.float32),
             landmark_variance=variance.astype(np.float32),
@@ -375,6 +377,37 @@ class HandTracker:
         status[usable & ~inliers] = STATUS_OUTLIER
         return MOTION_MODELS[0]
 
+    def _update_variance_factor(self, positions: Array, points_body: Array, r_rb: Array) -> None:
+        """Track the a-posteriori variance of unit weight of the body fit.
+
+        Table I's covariances are right only up to one global scale (about (20 cm)^2 against
+        mm-level landmark noise). ``sum(|r_i|^2 / R_i) / (3n - 6)`` over the posterior residuals
+        ``r_i = z_i - T p_i`` estimates that scale; it is smoothed over frames and applied to the
+        published covariance, so downstream consumers get metres and radians. Kalman gains do
+        not change under a global scale, so the estimates themselves are unaffected.
+        """
+        ekf = self._ekf
+        assert ekf is not None
+        n = positions.shape[0]
+        if n * 3 <= 6:
+            return
+        residual = positions - (points_body @ ekf.T[:3, :3].T + ekf.T[:3, 3])
+        sample = float(np.sum(residual * residual / r_rb[:, None])) / (3 * n - 6)
+        if not math.isfinite(sample) or sample <= 0.0:
+            return
+        if self._variance_factor is None:
+            self._variance_factor = sample
+        else:
+            a = self.config.variance_factor_smoothing
+            self._variance_factor += a * (sample - self._variance_factor)
+
+    @property
+    def variance_factor(self) -> float:
+        """Scale applied to the published covariance (1 until measured or when disabled)."""
+        if not self.config.calibrate_covariance or self._variance_factor is None:
+            return 1.0
+        return self._variance_factor
+
     def _kinematic(self, prior: KinematicPrior | None, stamp_ns: int
                    ) -> tuple[Array, Array] | None:
         """The caller's kinematic prediction for this stamp, validated (None if absent/bad)."""
@@ -429,6 +462,7 @@ class HandTracker:
             if used.size >= cfg.min_inliers:
                 chosen = predictions[step.model]
                 ekf.update_chosen(predictions, step)
+                self._update_variance_factor(positions[used], self._points_body[used], r_rb[used])
                 self._body_stamp_ns = stamp_ns
                 status[used] = STATUS_USED
                 return chosen.model

@@ -119,7 +119,9 @@ def test_covariance_is_consistent_with_noise_matched_config() -> None:
     """NEES of the 6-D pose error over a 40 s run (3 mm landmark noise).
 
     Table I's covariances correspond to ~20 cm landmark noise (R_lm = 0.05 m^2): against 3 mm
-    noise its NEES is ~1e-3 (checked below). With every covariance scaled to the noise (config
+    noise its raw NEES is ~1e-3 (checked below with ``calibrate_covariance=False``); the default
+    publishes the covariance scaled by the a-posteriori variance factor, whose NEES must then be
+    within a factor of two of the expected value. With every covariance scaled to the noise (config
     docstring; saliency factors 1 since the synthetic noise is the same for every landmark), the
     only known mismatch is at the landmark level: the true landmarks move far more smoothly than
     the random walk Q_lm, and a filtered landmark's error variance is then K/(2-K) sigma^2
@@ -128,7 +130,8 @@ def test_covariance_is_consistent_with_noise_matched_config() -> None:
     measured autocorrelation time of the NEES series is ~2 frames, so N/5 is conservative.
     """
     nees_runs = []
-    for config in (hg.noise_matched_config(NOISE_M, gate=4.0), TrackerConfig()):
+    for config in (hg.noise_matched_config(NOISE_M, gate=4.0), TrackerConfig(),
+                   TrackerConfig(calibrate_covariance=False)):
         rng = np.random.default_rng(2)
         tracker = HandTracker(config)
         log = hg.run(tracker, hg.Scenario(wobble, 40.0), noisy_hands(rng))
@@ -139,15 +142,16 @@ def test_covariance_is_consistent_with_noise_matched_config() -> None:
             e = se3_log(log.truth[k] @ T_hb @ se3_inverse(est.pose))  # left error, frame_id
             nees.append(e @ np.linalg.solve(est.covariance[:6, :6], e))
         nees_runs.append(np.array(nees))
-    matched, table_one = nees_runs
+    matched, table_one, table_one_raw = nees_runs
     kappa = 1.0 / (2.0 - steady_landmark_gain(TrackerConfig()))
     n_eff = matched.size // 5
     lo, hi = kappa * chi2.ppf([0.005, 0.995], 6 * n_eff) / n_eff
     print(f"NEES noise-matched: mean {matched.mean():.2f}, expected {6 * kappa:.2f} "
           f"(band {lo:.2f}-{hi:.2f}), median {np.median(matched):.2f}; "
-          f"Table I: mean {table_one.mean():.1e}")
+          f"Table I calibrated: mean {table_one.mean():.2f}, raw: {table_one_raw.mean():.1e}")
     assert lo < matched.mean() < hi
-    assert table_one.mean() < 0.01
+    assert 0.5 * 6 * kappa < table_one.mean() < 2.0 * 6 * kappa
+    assert table_one_raw.mean() < 0.01
 
 
 # --- outliers ----------------------------------------------------------------------------------
