@@ -22,10 +22,11 @@ from services.tracker.config import TrackerConfig
 from services.tracker.tracker import HandBodyEstimate, HandObservation, HandTracker
 
 
-def body_message(estimate: HandBodyEstimate, seq: int) -> HandBody:
-    """The wire form of a tracker estimate."""
+def body_message(estimate: HandBodyEstimate, seq: int, frame_id: str | None = None) -> HandBody:
+    """The wire form of a tracker estimate; ``frame_id`` overrides the tracker's own label
+    (landmarks that already arrive in the world frame are tracked, and published, there)."""
     return HandBody(
-        seq=seq, stamp_ns=int(estimate.stamp_ns), frame_id=estimate.frame_id,
+        seq=seq, stamp_ns=int(estimate.stamp_ns), frame_id=frame_id or estimate.frame_id,
         initialized=bool(estimate.initialized), pose=np.asarray(estimate.pose, "<f8"),
         twist=np.asarray(estimate.twist, "<f8"),
         covariance=np.asarray(0.5 * (estimate.covariance + estimate.covariance.T), "<f8"),
@@ -71,8 +72,9 @@ class TrackerNode:
         if estimate is None:
             return
         keys = self.service.keys
+        frame = "world" if message.frame_id == "world" else estimate.frame_id
         self.service.publish(keys.hand_body,
-                             body_message(estimate, self.service.next_seq(keys.hand_body)))
+                             body_message(estimate, self.service.next_seq(keys.hand_body), frame))
 
     def reset(self) -> None:
         self.tracker.reset()
