@@ -20,7 +20,7 @@ demo: install
 	$(BIN)/handkse demo
 
 lint: install
-	$(BIN)/ruff check services tests bench
+	$(BIN)/ruff check --no-cache services tests bench
 
 test: install lint
 	$(BIN)/python -m pytest -q

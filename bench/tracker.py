@@ -15,8 +15,6 @@ import tempfile
 import threading
 import time
 
-from services.tracker.tracker import HandObservation, HandTracker
-
 from bench.common import percentiles_ms, write_result
 from services.common.bus import Bus, ZenohOptions
 from services.common.keys import Keys
@@ -24,6 +22,7 @@ from services.common.protocol import HandBody, HandLandmarks
 from services.synthetic.generator import generate
 from services.synthetic.replay import landmark_messages
 from services.tracker.config import TrackerConfig
+from services.tracker.tracker import HandObservation, HandTracker
 
 
 def library(repeats: int = 5) -> dict[str, object]:
