@@ -44,7 +44,8 @@ def machine() -> dict[str, Any]:
                                 text=True, check=False, cwd=RESULTS.parent).stdout.strip()
     except OSError:
         commit = ""
-    return {"cpu": cpu, "cores": os.cpu_count(), "memory_gib": mem_gib,
+    load = [round(x, 2) for x in os.getloadavg()] if hasattr(os, "getloadavg") else None
+    return {"cpu": cpu, "cores": os.cpu_count(), "memory_gib": mem_gib, "load_avg_1_5_15": load,
             "os": platform.platform(), "python": sys.version.split()[0], "packages": versions,
             "commit": commit, "date": time.strftime("%Y-%m-%d %H:%M:%S %Z")}
 

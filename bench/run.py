@@ -5,7 +5,7 @@ from __future__ import annotations
 import importlib
 import sys
 
-BENCHMARKS = ("protocol", "tracker", "kinematics")
+BENCHMARKS = ("protocol", "tracker", "kinematics", "detector", "robot")
 
 
 def run(name: str) -> None:
@@ -20,6 +20,9 @@ def run(name: str) -> None:
             continue
         print(f"== {n}", flush=True)
         module.main()
+    from bench.summary import main as summarise
+
+    summarise()
 
 
 if __name__ == "__main__":
