@@ -35,7 +35,8 @@ def render(results: Path = RESULTS) -> str:
         lines += [f"## {doc.get('benchmark', path.stem)}", "",
                   f"Machine: {m.get('cpu')}, {m.get('cores')} cores, {m.get('memory_gib')} GiB, "
                   f"{m.get('os')}, Python {m.get('python')}, commit {m.get('commit')}, "
-                  f"{m.get('date')}, load average {m.get('load_avg_1_5_15')} at the start.", "", "| metric | value |", "| --- | --- |"]
+                  f"{m.get('date')}, load average {m.get('load_avg_1_5_15')} at the start.",
+                  "", "| metric | value |", "| --- | --- |"]
         rows: list[tuple[str, str]] = []
         _flatten("", doc.get("result", {}), rows)
         lines += [f"| {k} | {v} |" for k, v in rows]
