@@ -62,6 +62,7 @@ class ZenohOptions:
     lease_ms: int | None = None
     connect_timeout_ms: int = 10000
     shared_memory: bool | None = None
+    cfg: tuple[str, ...] = ()  # "KEY:VALUE" JSON5 insertions, applied last (Zenoh's --cfg)
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
@@ -80,6 +81,9 @@ def add_zenoh_arguments(parser: argparse.ArgumentParser) -> None:
                    help="disable multicast scouting (recommended outside a single laptop)")
     g.add_argument("-c", "--zenoh-config", metavar="FILE",
                    help="zenoh JSON5 config file (the ZENOH_CONFIG environment variable also works)")
+    g.add_argument("--cfg", action="append", metavar="KEY:VALUE", default=None,
+                   help="set one zenoh config value, e.g. 'transport/auth/usrpwd/user:\"tracker\"'"
+                        " (repeatable)")
 
 
 def options_from_args(args: argparse.Namespace, base: ZenohOptions | None = None) -> ZenohOptions:
@@ -104,6 +108,8 @@ def options_from_args(args: argparse.Namespace, base: ZenohOptions | None = None
         o = replace(o, listen=tuple(args.listen))
     if getattr(args, "no_multicast_scouting", None):
         o = replace(o, multicast_scouting=False)
+    if getattr(args, "cfg", None):
+        o = replace(o, cfg=(*o.cfg, *args.cfg))
     return o
 
 
@@ -130,6 +136,11 @@ def zenoh_config(o: ZenohOptions) -> zenoh.Config:
         put("transport/link/tx/lease", o.lease_ms)
     if o.shared_memory is not None:
         put("transport/shared_memory/enabled", o.shared_memory)
+    for item in o.cfg:
+        key, sep, value = item.partition(":")
+        if not sep or not key:
+            raise ValueError(f"--cfg {item!r} must look like KEY:VALUE (VALUE in JSON5)")
+        conf.insert_json5(key, value)
     return conf
 
 
