@@ -102,8 +102,11 @@ class KinematicsNode:
         if not body.initialized:
             return  # the tracker has no hand pose yet; nothing to learn from
         if body.frame_id != self.estimator.frame_id:
-            # A camera<->world switch cannot continue a demonstration: start a new one.
-            self.service.reject("frame_changed", f"{self.estimator.frame_id} -> {body.frame_id}")
+            # A fresh estimator adopts the frame of its first body; a camera<->world switch in
+            # the middle of a demonstration cannot continue it, so it starts a new one.
+            if self.estimator.belief.updates > 0:
+                self.service.reject("frame_changed",
+                                    f"{self.estimator.frame_id} -> {body.frame_id}")
             self.estimator = KinematicEstimator(self.config, frame_id=body.frame_id)
         before = sum(self.estimator.rejected.values())
         with self.service.latency.measure("update"):
