@@ -217,12 +217,11 @@ def cmd_bench(args: argparse.Namespace) -> int:
     return 0
 
 
-def cmd_service(name: str) -> Command:
-    """A command that runs service ``name`` (``services/<name>/service.py:main``)."""
+def cmd_module(module_name: str) -> Command:
+    """A command that runs ``main(args)`` of ``module_name``."""
 
     def run(args: argparse.Namespace) -> int:
-        module = importlib.import_module(f"services.{name}.service")
-        return int(module.main(args) or 0)
+        return int(importlib.import_module(module_name).main(args) or 0)
 
     return run
 
@@ -230,7 +229,9 @@ def cmd_service(name: str) -> Command:
 # --- parser ---
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
+    """The parser; a module command's own arguments are added only when it is the one run
+    (``argv``), so listing the commands imports no optional extra."""
     parser = argparse.ArgumentParser(prog="handkse", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
@@ -298,21 +299,39 @@ def build_parser() -> argparse.ArgumentParser:
     p = add("bench", cmd_bench, "run a benchmark and record it in bench/results/")
     p.add_argument("name", help="protocol, tracker, kinematics or all")
 
-    for name, module, help_text in SERVICE_COMMANDS:
-        p = add(name, cmd_service(module), help_text)
-        p.add_argument("--state-file", type=Path, help="state snapshot file (kinematics)")
+    chosen = _command_in(argv)
+    for name, module_name, help_text in MODULE_COMMANDS:
+        p = add(name, cmd_module(module_name), help_text)
+        if name == chosen:
+            module = importlib.import_module(module_name)
+            if hasattr(module, "add_arguments"):
+                module.add_arguments(p)
     return parser
 
 
-# (subcommand, package under services/, help)
-SERVICE_COMMANDS: list[tuple[str, str, str]] = [
-    ("tracker", "tracker", "run the tracker service (landmarks -> hand body)"),
-    ("kinematics", "kinematics", "run the kinematics service (hand body -> kinematic model)"),
+def _command_in(argv: list[str] | None) -> str | None:
+    """The subcommand named in ``argv`` (the first argument that is not an option)."""
+    args = sys.argv[1:] if argv is None else argv
+    return next((a for a in args if not a.startswith("-")), None)
+
+
+# Commands whose module has ``main(args)`` and optionally ``add_arguments(parser)``.
+MODULE_COMMANDS: list[tuple[str, str, str]] = [
+    ("tracker", "services.tracker.service", "run the tracker service (landmarks -> hand body)"),
+    ("kinematics", "services.kinematics.service",
+     "run the kinematics service (hand body -> kinematic model)"),
+    ("camera", "services.detector.camera", "publish RGB-D frames (Azure Kinect or a folder)"),
+    ("detector", "services.detector.service", "run the detector (RGB-D -> 3-D hand landmarks)"),
+    ("models", "services.detector.models", "prepare or show the ONNX hand models"),
+    ("robot-bridge", "services.robot_bridge.service",
+     "run the robot bridge (MuJoCo simulation or a real Panda)"),
+    ("robot-trials", "services.robot_bridge.trials",
+     "Table III in simulation: articulate key and window lock along each method's estimates"),
 ]
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
+    parser = build_parser(argv)
     args = parser.parse_args(argv)
     logging.basicConfig(level=args.log_level,
                         format="%(asctime)s %(name)s %(levelname)s %(message)s")

@@ -147,6 +147,12 @@ def run(bus: BusLike, keys: Keys, config: KinematicsConfig, stop: threading.Even
     service.run(stop)
 
 
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--state-file", type=Path,
+                        help="write the estimator state here after every update and restore it "
+                             "at start (survives kill and restart)")
+
+
 def main(args: argparse.Namespace) -> int:
     config = section_from_args(args, "kinematics")
     stop = threading.Event()
