@@ -2,7 +2,7 @@
 PYTHON ?= python3
 VENV   := .venv
 BIN    := $(VENV)/bin
-EXTRAS ?= dev,eval,robot
+EXTRAS ?= dev,eval,robot,detector
 STAMP  := $(VENV)/.installed
 
 .PHONY: install demo test lint bench clean
@@ -14,6 +14,7 @@ $(STAMP): pyproject.toml
 	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
 	$(BIN)/python -m pip install --quiet -e '.[$(EXTRAS)]'
+	$(BIN)/handkse models prepare
 	@touch $(STAMP)
 
 demo: install

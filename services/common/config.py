@@ -32,6 +32,7 @@ SECTIONS: dict[str, str] = {
     "zenoh": "services.common.bus:ZenohOptions",
     "tracker": "services.tracker.config:TrackerConfig",
     "kinematics": "services.kinematics.config:KinematicsConfig",
+    "detector": "services.detector.config:DetectorConfig",
 }
 
 

@@ -1,0 +1,163 @@
+"""Camera service: an RGB-D source published as ``RgbdFrame`` (``handkse camera``).
+
+``--kinect`` (Azure Kinect through pyk4a: colour-registered depth, factory intrinsics) or
+``--folder DIR`` (see :mod:`services.detector.sources` for the layout). Frames go to
+``handkse/{rig}/camera/rgbd`` with JPEG colour and 16-bit depth (raw by default: 1.8 MB per
+frame, but no PNG work on either side, which costs ~25-50 ms to encode and ~15 ms to decode per
+1280x720 ToF frame; ``--depth-encoding png16`` for slow links), congestion control DROP
+(only the newest frame matters). ``--save DIR`` also writes what is captured as a frame folder,
+so a Kinect session can be replayed with ``--folder``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+import threading
+import time
+
+from services.common.keys import Keys
+from services.common.service import BusLike, Service, stop_on_signals
+from services.detector.sources import (
+    FolderWriter,
+    FrameSource,
+    SourceUnavailable,
+    encode_frame,
+    open_source,
+)
+
+log = logging.getLogger(__name__)
+
+
+def publish_frames(service: Service, source: FrameSource, stop: threading.Event, *,
+                   jpeg_quality: int = 90, depth_encoding: str = "u16",
+                   max_frames: int | None = None, save: FolderWriter | None = None) -> int:
+    """Publish every frame of ``source`` until it ends, ``stop`` or ``max_frames``; returns
+    the number published."""
+    key = service.keys.camera_rgbd
+    n = 0
+    for frame in source:
+        if stop.is_set():
+            break
+        with service.latency.measure("encode"):
+            message = encode_frame(frame, service.next_seq(key), jpeg_quality=jpeg_quality,
+                                   depth_encoding=depth_encoding)
+        service.publish(key, message, frame=True)
+        if save is not None:
+            save.write(frame)
+        n += 1
+        if max_frames is not None and n >= max_frames:
+            break
+    return n
+
+
+def run(bus: BusLike, keys: Keys, source: FrameSource, stop: threading.Event, *,
+        jpeg_quality: int = 90, depth_encoding: str = "u16", max_frames: int | None = None,
+        save: FolderWriter | None = None) -> int:
+    """Camera service until the source ends or ``stop``; returns the frames published."""
+    service = Service("camera", bus, keys)
+    published = [0]
+
+    def capture() -> None:
+        try:
+            published[0] = publish_frames(service, source, stop, jpeg_quality=jpeg_quality,
+                                          depth_encoding=depth_encoding, max_frames=max_frames,
+                                          save=save)
+        except Exception:
+            log.exception("camera source failed")
+        finally:
+            time.sleep(0.2)  # let the last frames leave before the session closes
+            stop.set()
+
+    thread = threading.Thread(target=capture, name="camera-capture", daemon=True)
+    thread.start()
+    try:
+        service.run(stop)
+    finally:
+        stop.set()
+        source.close()
+        thread.join(5.0)
+    return published[0]
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Arguments of ``handkse camera`` (besides --rig, --config, --set and the zenoh ones)."""
+    which = parser.add_mutually_exclusive_group(required=True)
+    which.add_argument("--kinect", action="store_true",
+                       help="Azure Kinect (needs the kinect extra: pyk4a + libk4a)")
+    which.add_argument("--folder", metavar="DIR", help="frame folder (color/, depth/, "
+                                                       "intrinsics.json, timestamps.txt)")
+    parser.add_argument("--rate", type=float, default=1.0,
+                        help="folder: replay speed (1 = recorded pace, 0 = as fast as possible)")
+    parser.add_argument("--loop", action="store_true", help="folder: replay forever")
+    parser.add_argument("--fps", type=int, default=30, choices=(5, 15, 30),
+                        help="Kinect frame rate; folder pace when it has no timestamps.txt")
+    parser.add_argument("--kinect-device", type=int, default=0, help="Azure Kinect index")
+    parser.add_argument("--depth-mode", default="wfov_binned",
+                        choices=("wfov_binned", "nfov_unbinned", "nfov_binned", "wfov_unbinned"),
+                        help="Kinect depth mode (default wfov_binned: 0.25-2.88 m)")
+    parser.add_argument("--no-undistort", action="store_true",
+                        help="Kinect: publish the raw (distorted) images")
+    parser.add_argument("--jpeg-quality", type=int, default=90)
+    parser.add_argument("--depth-encoding", choices=("u16", "png16"), default="u16",
+                        help="raw 16-bit depth (default) or PNG16 (smaller, slower)")
+    parser.add_argument("--max-frames", type=int, metavar="N", help="stop after N frames")
+    parser.add_argument("--save", metavar="DIR", help="also write the frames to a folder")
+    parser.add_argument("--wait-for", action="append", metavar="SERVICE",
+                        help="wait for this service's liveliness token before publishing")
+    parser.add_argument("--wait-timeout", type=float, default=30.0)
+
+
+def main(args: argparse.Namespace) -> int:
+    """``handkse camera``: 0 when the source ended or was stopped, 2 when it cannot open."""
+    from services.common.bus import Bus, options_from_args
+    from services.common.config import section_from_args
+
+    keys = Keys(args.rig)
+    try:
+        source = open_source("kinect" if args.kinect else f"folder:{args.folder}",
+                             rate=args.rate, loop=args.loop, device_id=args.kinect_device,
+                             depth_mode=args.depth_mode, fps=args.fps,
+                             undistort=not args.no_undistort)
+    except (SourceUnavailable, ValueError) as exc:
+        print(f"handkse camera: {exc}", file=sys.stderr, flush=True)
+        return 2
+    stop = threading.Event()
+    stop_on_signals(stop)
+    save = None
+    try:
+        with Bus(options_from_args(args, section_from_args(args, "zenoh"))) as bus:
+            if args.wait_for:
+                from services.cli import wait_for_services
+
+                wait_for_services(bus, keys, args.wait_for, args.wait_timeout)
+            if args.save:
+                first = getattr(source, "intrinsics", None)
+                assert first is not None
+                save = FolderWriter(args.save, first,
+                                    getattr(source, "depth_scale_m", 0.001),
+                                    getattr(source, "T_world_camera", None))
+            print("camera ready", flush=True)
+            n = run(bus, keys, source, stop, jpeg_quality=args.jpeg_quality,
+                    depth_encoding=args.depth_encoding, max_frames=args.max_frames, save=save)
+    finally:
+        source.close()
+        if save is not None:
+            save.close()
+    print(f"camera published {n} frames", flush=True)
+    return 0
+
+
+def _standalone(argv: list[str] | None = None) -> int:
+    from services.detector.__main__ import standalone_parser
+
+    parser = standalone_parser("python -m services.detector.camera", __doc__ or "", add_arguments)
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=args.log_level,
+                        format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    return main(args)
+
+
+if __name__ == "__main__":
+    sys.exit(_standalone())
