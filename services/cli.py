@@ -285,6 +285,8 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     p.add_argument("--participant", type=int, default=3)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--rate", type=float, default=1.0, help="replay speed factor (default 1)")
+    p.add_argument("--no-robot", action="store_true",
+                   help="stop after the estimate (skip the simulated articulation)")
 
     p = add("eval", cmd_eval, "evaluate every method on the synthetic demonstrations (Table II)")
     from services.evaluation.cli import add_arguments as add_eval_arguments

@@ -111,8 +111,12 @@ def print_comparison(model: KinematicModel, demo: Demonstration) -> float:
 
 
 def run_demo(object_name: str = "key", participant: int = 3, seed: int = 0, rate: float = 1.0,
-             rig: str = "demo", workdir: Path | None = None) -> float:
-    """Run the whole pipeline on one synthetic demonstration; returns the tangent error (deg)."""
+             rig: str = "demo", workdir: Path | None = None, robot: bool = True) -> float:
+    """Run the whole pipeline on one synthetic demonstration; returns the tangent error (deg).
+
+    With ``robot``, the simulated Panda then grasps the true object and articulates it along the
+    estimated model (MuJoCo), and the result with peak and mean force is printed.
+    """
     demo = generate(object_name, participant, seed)
     messages = demonstration_recording(demo, rig)
     duration = (demo.stamps_ns[-1] - demo.stamps_ns[0]) * 1e-9
@@ -140,7 +144,14 @@ def run_demo(object_name: str = "key", participant: int = 3, seed: int = 0, rate
                 print(_progress_line(latest[-1], demo, time.monotonic() - t0), flush=True)
         _wait_settled(latest)
         final = KinematicModel.from_msgpack(bus.get(keys.kinematics_model)[0][1])
-    return print_comparison(final, demo)
+    error = print_comparison(final, demo)
+    if robot:
+        from services.robot_bridge.simulation import articulate_demonstration, format_result
+
+        print("\nsimulated Panda articulating the object along the estimate (MuJoCo):")
+        sim = articulate_demonstration(final, demo)
+        print(format_result(sim.result, final.type))
+    return error
 
 
 def _wait_alive(bus: Bus, keys: Keys, services: Sequence[str], timeout: float) -> None:
@@ -167,5 +178,6 @@ def _wait_settled(latest: list[KinematicModel], quiet_s: float = 1.0, timeout: f
 
 
 def main(args: argparse.Namespace) -> int:
-    run_demo(args.object, args.participant, args.seed, args.rate, args.rig)
+    run_demo(args.object, args.participant, args.seed, args.rate, args.rig,
+             robot=not args.no_robot)
     return 0

@@ -16,3 +16,5 @@ def test_demo_runs_end_to_end_and_prints_a_tangent_error(procs: Processes) -> No
     assert match is not None, out
     assert 0.0 <= float(match.group(1)) <= 180.0
     assert re.search(r"updates\s+[1-9]\d*", out), out  # the model absorbed hand-body updates
+    # then the simulated Panda acts on the estimate (or refuses it with a reason)
+    assert re.search(r"simulated articulation: (SUCCESS|FAILED) \(\w+\)", out), out

@@ -33,6 +33,7 @@ SECTIONS: dict[str, str] = {
     "tracker": "services.tracker.config:TrackerConfig",
     "kinematics": "services.kinematics.config:KinematicsConfig",
     "detector": "services.detector.config:DetectorConfig",
+    "robot_bridge": "services.robot_bridge.config:RobotBridgeConfig",
 }
 
 

@@ -1,0 +1,123 @@
+"""The narrow robot interface the bridge drives, and the factory that picks an implementation.
+
+A backend runs a Cartesian impedance controller on the arm (the law of
+:mod:`services.robot_bridge.controller`) whose target the bridge moves every control tick:
+``command(target, twist)`` then ``step()``, reading ``read()`` in between. Two
+implementations: :class:`~services.robot_bridge.mujoco_backend.MujocoBackend` (simulated Panda
+and object; the test double) and :class:`~services.robot_bridge.pandapy_backend.PandaPyBackend`
+(a real Panda through panda-python, imported only inside :func:`make_backend`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Protocol
+
+import numpy as np
+from numpy.typing import NDArray
+
+from services.robot_bridge.controller import ImpedanceGains
+
+if TYPE_CHECKING:
+    from services.robot_bridge.config import RobotBridgeConfig
+    from services.robot_bridge.panda_scene import ObjectSpec
+
+Array = NDArray[np.float64]
+
+
+class BackendError(RuntimeError):
+    """The robot (or simulation) reported an error; the message says what happened."""
+
+
+@dataclass(frozen=True)
+class BackendState:
+    """One reading of the arm, base frame.
+
+    ``t_s`` backend time (s); ``q``/``dq`` (7,) rad, rad/s; ``T_base_ee`` 4x4 TCP pose;
+    ``wrench`` (6,) external force (N) then torque (N m, about the TCP) acting on the end-effector,
+    with the offset captured by ``zero_wrench()`` removed; ``tau`` (7,) joint torque last sent
+    (N m, including gravity in simulation); ``saturated`` whether that command was clamped at a
+    torque limit; ``object_joint`` the articulated object's joint value (rad or m) where the
+    backend can measure it (simulation), else None.
+    """
+
+    t_s: float
+    q: Array
+    dq: Array
+    T_base_ee: Array
+    wrench: Array
+    tau: Array
+    saturated: bool
+    object_joint: float | None = None
+
+
+class RobotBackend(Protocol):
+    """What the bridge needs from an arm: read, command an impedance target, step, stop."""
+
+    name: str
+    control_period_s: float
+    object_axis_base: Array | None  # simulated object's true axis (None on a real robot)
+
+    def read(self) -> BackendState:
+        """The latest state (no waiting)."""
+        ...
+
+    def start(self, gains: ImpedanceGains) -> None:
+        """Start the impedance controller holding the current pose with ``gains``."""
+        ...
+
+    def command(self, T_base_target: Array, twist_target: Array | None = None) -> Array:
+        """Set the impedance target (4x4) and feed-forward twist (6,); returns the twist sent."""
+        ...
+
+    def step(self) -> None:
+        """Advance one control period (simulate it, or wait for the robot's next tick).
+
+        Raises :class:`BackendError` when the robot stops on an error (reflex, communication).
+        """
+        ...
+
+    def zero_wrench(self) -> None:
+        """Take the current wrench reading as zero (call right after grasping)."""
+        ...
+
+    def hold(self) -> None:
+        """Stop moving: make the current measured pose the target, with zero twist."""
+        ...
+
+    def stop(self) -> None:
+        """Hold, then end the controller (real robot: hand back to the robot's own hold)."""
+        ...
+
+    def close(self) -> None:
+        """Release the robot or simulation."""
+        ...
+
+
+def make_backend(config: RobotBridgeConfig, obj: ObjectSpec | None = None) -> RobotBackend:
+    """The backend named by ``config.backend``; vendor packages are imported only here.
+
+    ``obj``: the simulated object (MuJoCo only; default: the configured ``sim_object`` preset at
+    the nominal grasp pose).
+    """
+    if config.backend == "mujoco":
+        from services.robot_bridge.mujoco_backend import MujocoBackend, preset_object
+
+        return MujocoBackend(obj or preset_object(config.sim_object), config)
+    if config.backend == "panda":
+        if not config.robot_host:
+            raise ValueError("robot_bridge.robot_host must name the Panda's address for "
+                             "backend 'panda'")
+        if np.allclose(config.base_T_camera(), np.eye(4)):
+            raise ValueError("robot_bridge.T_base_camera is the identity: set the hand-eye "
+                             "calibration before driving a real robot")
+        try:
+            import panda_py
+            from panda_py import controllers
+        except ImportError as exc:
+            raise ValueError("backend 'panda' needs panda-python: pip install 'handkse[panda]'"
+                             ) from exc
+        from services.robot_bridge.pandapy_backend import PandaPyBackend
+
+        return PandaPyBackend(panda_py.Panda(config.robot_host), controllers, config)
+    raise ValueError(f"unknown backend {config.backend!r}")

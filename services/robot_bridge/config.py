@@ -1,0 +1,150 @@
+"""Configuration of the robot bridge (``[robot_bridge]`` TOML section).
+
+Defaults follow the ICRA-25 paper (sec. IV.C: 70 N force limit, 180 deg articulation with a
+Jacobian-transpose Cartesian impedance controller) and ROBOT_BRIDGE_NOTES.md (gains 1000 N/m and
+50 N m/rad, a 20 kN/m / 30 N m/rad compliant grasp in simulation). Every safety limit is on by
+default; a request may lower the force limit but never raise it above ``force_limit_n``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, fields
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from services.robot_bridge.controller import ImpedanceGains
+
+BACKENDS = ("mujoco", "panda")
+SIM_OBJECTS = ("key", "window_lock", "bolt")
+_IDENTITY = (1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0)
+
+
+@dataclass(frozen=True)
+class RobotBridgeConfig:
+    """Parameters of :mod:`services.robot_bridge` (SI units, as the field names say)."""
+
+    # --- Backend ---
+    backend: str = "mujoco"               # "mujoco" (simulation) or "panda" (panda-python)
+    robot_host: str = ""                  # Panda's address (backend "panda")
+    # Hand-eye calibration: pose of the camera in the robot base frame, 16 numbers, row-major.
+    # The kinematic model's frame ("camera", or "world" for a static camera) maps through it.
+    T_base_camera: tuple[float, ...] = _IDENTITY
+
+    # --- Model checks (refused with a reason) ---
+    min_type_probability: float = 0.8     # P(type) of the model's type must reach this
+    max_model_age_s: float = 120.0        # model stamp_ns must be at most this old (wall clock)
+    model_query_timeout_s: float = 2.0    # get on the kinematics service when no model is given
+
+    # --- Abort limits (checked every control tick) ---
+    force_limit_n: float = 70.0           # |F| at the wrist (paper: 70 N)
+    wrist_torque_limit_nm: float = 12.0   # |T| at the wrist: the wrist joints' 12 N m limit
+    tracking_error_limit_m: float = 0.10  # TCP position error to the target
+    tracking_error_limit_rad: float = 0.6  # TCP orientation error to the target
+    saturation_abort_s: float = 0.005     # joint torque demand above Franka's limit this long
+
+    # --- Plan checks ---
+    max_linear_speed_m_per_s: float = 0.25
+    max_angular_speed_rad_per_s: float = 2.0
+    joint7_margin_rad: float = 0.1        # keep joint 7 this far inside its range
+    check_joint_path: bool = True         # IK along the planned path (needs mujoco, else skipped)
+    joint_limit_margin_rad: float = 0.0   # ... every joint at least this far inside its range
+
+    # --- Controller (Jacobian-transpose Cartesian impedance) ---
+    translational_stiffness_n_per_m: float = 1000.0
+    rotational_stiffness_nm_per_rad: float = 50.0
+    damping_ratio: float = 1.0
+    nullspace_stiffness_nm_per_rad: float = 0.5
+
+    # --- Execution ---
+    hold_s: float = 0.5                   # keep the final target this long after the motion
+    settle_s: float = 1.0                 # after an abort, hold the measured pose this long
+    success_tolerance: float = 0.03       # success: reached at least (1 - this) of the amount
+
+    # --- Service ---
+    state_rate_hz: float = 100.0          # RobotState publication rate (wall clock)
+
+    # --- Simulation (backend "mujoco") ---
+    sim_object: str = "key"               # "key", "window_lock" or "bolt" at the grasp pose
+    sim_realtime_factor: float = 1.0      # service pacing: 1 = real time, 0 = as fast as possible
+    grasp_stiffness_n_per_m: float = 20000.0
+    grasp_stiffness_nm_per_rad: float = 30.0
+    grasp_damping_n_s_per_m: float = 20.0
+    grasp_damping_nm_s_per_rad: float = 0.05
+
+    # --- Real robot (backend "panda") ---
+    # Franka reflex thresholds, raised above the software limits so the bridge aborts first.
+    reflex_force_threshold_n: float = 100.0
+    reflex_torque_threshold_nm: float = 30.0   # Cartesian torque reflex
+    reflex_joint_torque_threshold_nm: float = 60.0  # joints 1-4; joints 5-7 use 2/3 of it
+
+    def __post_init__(self) -> None:
+        if self.backend not in BACKENDS:
+            raise ValueError(f"backend must be one of {BACKENDS}, got {self.backend!r}")
+        if self.sim_object not in SIM_OBJECTS:
+            raise ValueError(f"sim_object must be one of {SIM_OBJECTS}, got {self.sim_object!r}")
+        for f in fields(self):
+            v = getattr(self, f.name)
+            if isinstance(v, float) and not math.isfinite(v):
+                raise ValueError(f"{f.name} must be finite, got {v!r}")
+        positive = ("min_type_probability", "max_model_age_s", "model_query_timeout_s",
+                    "force_limit_n", "wrist_torque_limit_nm", "tracking_error_limit_m",
+                    "tracking_error_limit_rad", "saturation_abort_s", "max_linear_speed_m_per_s",
+                    "max_angular_speed_rad_per_s", "translational_stiffness_n_per_m",
+                    "rotational_stiffness_nm_per_rad", "damping_ratio", "state_rate_hz",
+                    "grasp_stiffness_n_per_m", "grasp_stiffness_nm_per_rad",
+                    "reflex_force_threshold_n", "reflex_torque_threshold_nm",
+                    "reflex_joint_torque_threshold_nm")
+        for name in positive:
+            if not getattr(self, name) > 0.0:
+                raise ValueError(f"{name} must be > 0, got {getattr(self, name)!r}")
+        non_negative = ("joint7_margin_rad", "joint_limit_margin_rad",
+                        "nullspace_stiffness_nm_per_rad", "hold_s", "settle_s",
+                        "success_tolerance", "sim_realtime_factor", "grasp_damping_n_s_per_m",
+                        "grasp_damping_nm_s_per_rad")
+        for name in non_negative:
+            if not getattr(self, name) >= 0.0:
+                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)!r}")
+        if self.min_type_probability > 1.0:
+            raise ValueError(f"min_type_probability must be <= 1, got {self.min_type_probability}")
+        if self.success_tolerance >= 1.0:
+            raise ValueError(f"success_tolerance must be < 1, got {self.success_tolerance}")
+        if self.max_angular_speed_rad_per_s > 2.5 or self.max_linear_speed_m_per_s > 1.7:
+            raise ValueError("speed limits must stay within Franka's Cartesian limits "
+                             "(1.7 m/s, 2.5 rad/s)")
+        if self.reflex_force_threshold_n <= self.force_limit_n:
+            raise ValueError(f"reflex_force_threshold_n ({self.reflex_force_threshold_n}) must "
+                             f"exceed force_limit_n ({self.force_limit_n}) so the software "
+                             "abort acts first")
+        T = np.asarray(self.T_base_camera, float)
+        if T.shape != (16,):
+            raise ValueError(f"T_base_camera needs 16 numbers (row-major 4x4), got {T.size}")
+        T = T.reshape(4, 4)
+        R = T[:3, :3]
+        if (np.abs(R.T @ R - np.eye(3)).max() > 1e-6 or abs(np.linalg.det(R) - 1.0) > 1e-6
+                or np.abs(T[3] - (0.0, 0.0, 0.0, 1.0)).max() > 0.0):
+            raise ValueError("T_base_camera is not a rigid transform")
+
+    def base_T_camera(self) -> NDArray[np.float64]:
+        """``T_base_camera`` as a 4x4 array."""
+        return np.asarray(self.T_base_camera, float).reshape(4, 4)
+
+    def gains(self) -> ImpedanceGains:
+        return ImpedanceGains(translational_n_per_m=self.translational_stiffness_n_per_m,
+                              rotational_nm_per_rad=self.rotational_stiffness_nm_per_rad,
+                              damping_ratio=self.damping_ratio,
+                              nullspace_nm_per_rad=self.nullspace_stiffness_nm_per_rad)
+
+
+SECTION = "robot_bridge"
+
+
+def config_from_args(args: Any) -> RobotBridgeConfig:
+    """The ``[robot_bridge]`` section from the CLI's ``--config FILE`` and ``--set`` overrides."""
+    from services.common.config import section_from_args
+
+    config = section_from_args(args, SECTION)
+    assert isinstance(config, RobotBridgeConfig)
+    return config

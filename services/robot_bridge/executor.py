@@ -1,0 +1,250 @@
+"""Run an articulation on a backend with every safety check, and the request-level bridge.
+
+:func:`execute` streams a planned trajectory to a :class:`~services.robot_bridge.backend.
+RobotBackend` tick by tick and aborts on the first violated limit (force, wrist torque, torque
+saturation, tracking error, backend error), then holds the measured pose for ``settle_s`` so the
+arm comes to rest. :class:`Bridge` turns an ``ArticulateRequest`` plus a ``KinematicModel`` into
+an ``ArticulateResult``: model checks, plan checks, dry runs and execution, with the reason of
+every refusal or abort (see :mod:`services.robot_bridge.safety`).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from services.common.protocol import ArticulateRequest, ArticulateResult, KinematicModel
+from services.robot_bridge.backend import BackendError, BackendState, RobotBackend
+from services.robot_bridge.config import RobotBridgeConfig
+from services.robot_bridge.panda_scene import Q_MAX_RAD, Q_MIN_RAD, TAU_MAX_NM
+from services.robot_bridge.safety import (
+    Refusal,
+    SaturationWatch,
+    check_amount,
+    check_model,
+    tracking_violation,
+    wrench_violation,
+)
+from services.robot_bridge.trajectory import ArticulationPlan, joint_in_base, plan_checks
+
+log = logging.getLogger(__name__)
+
+Array = NDArray[np.float64]
+Tick = Callable[[BackendState, bool], None]
+_INV_TAU_MAX = 1.0 / TAU_MAX_NM
+
+
+@dataclass
+class Trace:
+    """Per-tick record of an execution (lists of floats; base frame, SI units)."""
+
+    t_s: list[float] = field(default_factory=list)
+    force_n: list[float] = field(default_factory=list)
+    torque_nm: list[float] = field(default_factory=list)
+    progress: list[float] = field(default_factory=list)        # commanded joint progress
+    articulated: list[float] = field(default_factory=list)     # reached joint progress
+    tau_ratio: list[float] = field(default_factory=list)       # max |tau_i| / tau_max_i sent
+    tau_rate_nm_per_s: list[float] = field(default_factory=list)  # max |dtau_i/dt| sent
+    joint_speed_rad_per_s: list[float] = field(default_factory=list)  # max |dq_i|
+    tcp_speed_m_per_s: list[float] = field(default_factory=list)     # |dp/dt| of the TCP
+    stopped_at_s: float | None = None                          # time of the abort, if any
+
+    def arrays(self) -> dict[str, Array]:
+        return {k: np.asarray(v, float) for k, v in self.__dict__.items() if isinstance(v, list)}
+
+
+@dataclass(frozen=True)
+class Execution:
+    """Outcome of :func:`execute`: the result message fields and the trace."""
+
+    success: bool
+    reason: str
+    detail: str
+    articulated: float
+    peak_force_n: float
+    mean_force_n: float
+    peak_torque_nm: float
+    duration_s: float
+    trace: Trace
+
+
+def _articulated(plan: ArticulationPlan, state: BackendState, backend: RobotBackend,
+                 previous: float) -> float:
+    """Joint progress reached, signed like the plan: measured on the object where possible."""
+    axis = backend.object_axis_base
+    if state.object_joint is not None and axis is not None:
+        return state.object_joint * (1.0 if float(axis @ plan.joint.axis) >= 0.0 else -1.0)
+    return plan.progress_from_pose(state.T_base_ee, previous)
+
+
+def execute(backend: RobotBackend, plan: ArticulationPlan, config: RobotBridgeConfig, *,
+            force_limit_n: float | None = None, on_tick: Tick | None = None,
+            cancel: threading.Event | None = None, record: bool = True) -> Execution:
+    """Follow ``plan`` on ``backend`` (already holding the grasp pose) under the safety limits.
+
+    ``on_tick(state, articulating)`` runs after every control tick (publishing, pacing).
+    Success: no abort and at least ``(1 - success_tolerance) |amount|`` reached.
+    """
+    force_limit = config.force_limit_n if force_limit_n is None else min(force_limit_n,
+                                                                          config.force_limit_n)
+    dt = backend.control_period_s
+    watch = SaturationWatch(config.saturation_abort_s, dt)
+    trace = Trace()
+    backend.start(config.gains())
+    backend.zero_wrench()
+    n_motion = math.ceil(plan.total_s / dt)
+    n_settle = math.ceil(config.settle_s / dt)
+    abort: Refusal | None = None
+    articulated = 0.0
+    peak_f = peak_t = 0.0
+    sum_f = 0.0
+    n_f = 0
+    s = backend.read()
+    t0 = s.t_s
+    progress = 0.0
+    taus: list[Array] = [s.tau]
+    dqs: list[Array] = []
+    tcp: list[Array] = [s.T_base_ee[:3, 3]]
+    abort_tick = 0
+    i = 0
+    while (i < n_motion and abort is None) or (abort is not None and i < abort_tick + n_settle):
+        moving = abort is None
+        if moving:
+            T_d, twist_d, progress = plan.sample(i * dt)
+            backend.command(T_d, twist_d)
+        try:
+            backend.step()
+        except BackendError as exc:
+            log.error("articulation stopped by the backend: %s", exc)
+            if abort is None:
+                abort = Refusal("robot_error", str(exc))
+                trace.stopped_at_s = s.t_s - t0
+            break
+        s = backend.read()
+        f = math.sqrt(float(s.wrench[0] ** 2 + s.wrench[1] ** 2 + s.wrench[2] ** 2))
+        tq = math.sqrt(float(s.wrench[3] ** 2 + s.wrench[4] ** 2 + s.wrench[5] ** 2))
+        articulated = _articulated(plan, s, backend, articulated)
+        if moving:
+            peak_f, peak_t = max(peak_f, f), max(peak_t, tq)
+            sum_f += f
+            n_f += 1
+            violation = (wrench_violation(s.wrench, force_limit, config.wrist_torque_limit_nm)
+                         or watch.update(s.saturated)
+                         or tracking_violation(T_d, s.T_base_ee, config.tracking_error_limit_m,
+                                               config.tracking_error_limit_rad))
+            if violation is None and cancel is not None and cancel.is_set():
+                violation = Refusal("cancelled", "stopped on request")
+            if violation is not None:
+                abort = violation
+                abort_tick = i
+                trace.stopped_at_s = s.t_s - t0
+                log.warning("articulation aborted: %s (%s)", violation.reason, violation.detail)
+                backend.hold()
+        if record:
+            trace.t_s.append(s.t_s - t0)
+            trace.force_n.append(f)
+            trace.torque_nm.append(tq)
+            trace.progress.append(progress)
+            trace.articulated.append(articulated)
+            taus.append(s.tau)
+            dqs.append(s.dq)
+            tcp.append(s.T_base_ee[:3, 3])
+        if on_tick is not None:
+            on_tick(s, moving)
+        i += 1
+    duration = s.t_s - t0
+    backend.stop()
+    if record and dqs:
+        tau = np.asarray(taus)
+        trace.tau_ratio = list((np.abs(tau[1:]) * _INV_TAU_MAX).max(axis=1))
+        trace.tau_rate_nm_per_s = list(np.abs(np.diff(tau, axis=0)).max(axis=1) / dt)
+        trace.joint_speed_rad_per_s = list(np.abs(np.asarray(dqs)).max(axis=1))
+        trace.tcp_speed_m_per_s = list(np.linalg.norm(np.diff(np.asarray(tcp), axis=0),
+                                                      axis=1) / dt)
+    mean_f = sum_f / n_f if n_f else 0.0
+    if abort is not None:
+        return Execution(False, abort.reason, abort.detail, articulated, peak_f, mean_f, peak_t,
+                         duration, trace)
+    need = (1.0 - config.success_tolerance) * abs(plan.amount)
+    reached = articulated * math.copysign(1.0, plan.amount)
+    if reached < need:
+        return Execution(False, "incomplete", f"reached {reached:.4f} of {abs(plan.amount):.4f}",
+                         articulated, peak_f, mean_f, peak_t, duration, trace)
+    return Execution(True, "ok", "", articulated, peak_f, mean_f, peak_t, duration, trace)
+
+
+def _joint_path_check(plan: ArticulationPlan, q: Array, margin_rad: float) -> Refusal | None:
+    """IK along the plan on the generated Panda model; skipped (logged) without MuJoCo."""
+    try:
+        from services.robot_bridge.mujoco_backend import path_joint_check
+    except ImportError:
+        log.warning("mujoco is not installed: the joint-range check of the planned path is "
+                    "skipped (pip install 'handkse[robot]')")
+        return None
+    return path_joint_check(plan, q, margin_rad)
+
+
+class Bridge:
+    """Request-level articulation on one backend: checks, plan, dry run, execution."""
+
+    def __init__(self, backend: RobotBackend, config: RobotBridgeConfig) -> None:
+        self.backend = backend
+        self.config = config
+        self.last_execution: Execution | None = None
+
+    def plan(self, request: ArticulateRequest, model: KinematicModel | None,
+             now_ns: int | None) -> ArticulationPlan | Refusal:
+        """The checked plan for ``request`` on ``model`` (camera frame), or why not."""
+        c = self.config
+        refusal = check_model(model, min_type_probability=c.min_type_probability,
+                              max_age_s=c.max_model_age_s, now_ns=now_ns)
+        if refusal is not None:
+            return refusal
+        assert model is not None
+        joint = joint_in_base(model, c.base_T_camera())
+        refusal = check_amount(request.amount, request.duration_s, joint.joint_type)
+        if refusal is not None:
+            return refusal
+        state = self.backend.read()
+        plan = ArticulationPlan(joint=joint, T_base_grasp=state.T_base_ee.copy(),
+                                amount=float(request.amount), duration_s=float(request.duration_s),
+                                hold_s=c.hold_s)
+        refusal = plan_checks(plan, float(state.q[6]),
+                              max_linear_m_per_s=c.max_linear_speed_m_per_s,
+                              max_angular_rad_per_s=c.max_angular_speed_rad_per_s,
+                              joint7_limits_rad=(float(Q_MIN_RAD[6]), float(Q_MAX_RAD[6])),
+                              joint7_margin_rad=c.joint7_margin_rad)
+        if refusal is None and c.check_joint_path:
+            refusal = _joint_path_check(plan, state.q, c.joint_limit_margin_rad)
+        return refusal if refusal is not None else plan
+
+    def articulate(self, request: ArticulateRequest, model: KinematicModel | None, *,
+                   now_ns: int | None, on_tick: Tick | None = None,
+                   cancel: threading.Event | None = None) -> ArticulateResult:
+        """Check, plan and (unless ``request.dry_run``) execute; never raises for a bad model."""
+        stamp = model.stamp_ns if model is not None else 0
+        frame = model.frame_id if model is not None else "camera"
+        planned = self.plan(request, model, now_ns)
+        if isinstance(planned, Refusal):
+            log.warning("articulation refused: %s (%s)", planned.reason, planned.detail)
+            return ArticulateResult(stamp_ns=stamp, frame_id=frame, success=False,
+                                    reason=planned.reason, articulated=0.0, peak_force_n=0.0,
+                                    mean_force_n=0.0, duration_s=0.0)
+        if request.dry_run:
+            return ArticulateResult(stamp_ns=stamp, frame_id=frame, success=True,
+                                    reason="dry_run", articulated=0.0, peak_force_n=0.0,
+                                    mean_force_n=0.0, duration_s=planned.total_s)
+        ex = execute(self.backend, planned, self.config, force_limit_n=request.force_limit_n,
+                     on_tick=on_tick, cancel=cancel)
+        self.last_execution = ex
+        return ArticulateResult(stamp_ns=stamp, frame_id=frame, success=ex.success,
+                                reason=ex.reason, articulated=float(ex.articulated),
+                                peak_force_n=float(ex.peak_force_n),
+                                mean_force_n=float(ex.mean_force_n),
+                                duration_s=float(max(ex.duration_s, 0.0)))

@@ -1,0 +1,171 @@
+"""Safety limits as pure functions: each returns what is actually allowed, or a refusal reason.
+
+Reasons are short stable labels (they end up in ``ArticulateResult.reason``):
+
+=====================  =========================================================================
+``low_confidence``     the model's type probability is below the configured threshold
+``unsupported_type``   the model is rigid, disconnected or unknown (nothing to articulate)
+``stale_model``        the model is older than the configured age (or stamped in the future)
+``no_model``           no model was given and none could be obtained from the kinematics service
+``invalid_request``    amount zero/non-finite, or a duration that is too short
+``too_fast``           the planned peak Cartesian speed exceeds the configured limit
+``workspace``          the planned path leaves the reachable workspace
+``joint7_range``       joint 7 would leave its range (regrasp rotated by 180 deg about the approach)
+``joint_limits``       the planned path needs a joint beyond (or within a margin of) its range
+``force_limit``        ``|F|`` at the wrist exceeded the force limit (default 70 N)
+``torque_limit``       ``|T|`` at the wrist exceeded the wrist torque limit
+``torque_saturation``  a joint torque demand exceeded Franka's limit for longer than allowed
+``tracking_error``     the end-effector lagged the target by more than the bound
+``robot_error``        the backend reported an error (reflex, communication, simulation)
+``cancelled``          stopped on request (service shutdown)
+``incomplete``         the trajectory ended without reaching the commanded amount
+=====================  =========================================================================
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from services.common.protocol import KinematicModel
+
+Array = NDArray[np.float64]
+
+ARTICULABLE_TYPES = ("revolute", "prismatic")
+# Allowed clock skew for a model stamped slightly in the future (camera and robot clocks) [s].
+FUTURE_TOLERANCE_S = 1.0
+
+
+@dataclass(frozen=True)
+class Refusal:
+    """Why a request is not executed: a stable ``reason`` label and a human-readable ``detail``."""
+
+    reason: str
+    detail: str
+
+
+@dataclass(frozen=True)
+class TorqueCommand:
+    """A joint torque command after clamping (N m).
+
+    ``tau`` is what is sent; ``saturated`` is true when the demand exceeded a joint's torque
+    limit (the clamp reduced its magnitude, not only its rate).
+    """
+
+    tau: Array
+    saturated: bool
+
+
+def clamp_torque(tau_desired: Array, tau_previous: Array, dt_s: float, tau_max_nm: Array,
+                 rate_max_nm_per_s: float) -> TorqueCommand:
+    """Clamp a torque demand to ``|tau| <= tau_max`` and ``|tau - tau_prev| <= rate_max dt``.
+
+    ``tau_previous`` must itself be within the limits (it is the last command sent); the result
+    then satisfies both bounds exactly.
+    """
+    step = rate_max_nm_per_s * dt_s
+    lo = np.maximum(tau_previous - step, -tau_max_nm)
+    hi = np.minimum(tau_previous + step, tau_max_nm)
+    tau = np.minimum(np.maximum(tau_desired, lo), hi)
+    saturated = bool((np.abs(tau_desired) > tau_max_nm).any())
+    return TorqueCommand(tau=tau, saturated=saturated)
+
+
+def clamp_twist(twist: Array, linear_max_m_per_s: float, angular_max_rad_per_s: float) -> Array:
+    """Scale the linear and angular parts of a twist (6,) down to their speed limits."""
+    out = np.array(twist, dtype=float)
+    for lo, limit in ((0, linear_max_m_per_s), (3, angular_max_rad_per_s)):
+        n = math.sqrt(float(out[lo] ** 2 + out[lo + 1] ** 2 + out[lo + 2] ** 2))
+        if n > limit:
+            out[lo:lo + 3] *= limit / n
+    return out
+
+
+def check_model(model: KinematicModel | None, *, min_type_probability: float,
+                max_age_s: float, now_ns: int | None) -> Refusal | None:
+    """Refuse a model that is missing, not articulable, uncertain or stale.
+
+    ``now_ns`` is the current time on the clock of the model's ``stamp_ns`` (wall clock for the
+    live pipeline); ``None`` skips the age check (offline evaluation of recorded estimates).
+    """
+    if model is None:
+        return Refusal("no_model", "no kinematic model was given or available")
+    if model.type not in ARTICULABLE_TYPES:
+        return Refusal("unsupported_type",
+                       f"model type {model.type!r} cannot be articulated (need revolute or "
+                       "prismatic)")
+    params = model.revolute if model.type == "revolute" else model.prismatic
+    if params is None:
+        return Refusal("unsupported_type", f"model type {model.type} has no parameters")
+    p = float(model.probabilities.get(model.type, 0.0))
+    if p < min_type_probability:
+        return Refusal("low_confidence",
+                       f"P({model.type}) = {p:.3f} is below the threshold {min_type_probability}")
+    if now_ns is not None:
+        age_s = (now_ns - model.stamp_ns) * 1e-9
+        if age_s > max_age_s:
+            return Refusal("stale_model", f"model is {age_s:.1f} s old (limit {max_age_s} s)")
+        if age_s < -FUTURE_TOLERANCE_S:
+            return Refusal("stale_model",
+                           f"model is stamped {-age_s:.1f} s in the future (clock mismatch?)")
+    return None
+
+
+def check_amount(amount: float, duration_s: float, joint_type: str) -> Refusal | None:
+    """Refuse a zero/non-finite amount or an implausible one (> 2 pi rad or > 1 m)."""
+    if not math.isfinite(amount) or amount == 0.0:
+        return Refusal("invalid_request", f"amount must be finite and non-zero, got {amount}")
+    limit = 2.0 * math.pi if joint_type == "revolute" else 1.0
+    if abs(amount) > limit:
+        unit = "rad" if joint_type == "revolute" else "m"
+        return Refusal("invalid_request", f"|amount| {abs(amount):.3f} {unit} exceeds {limit:.3f}")
+    if not duration_s > 0.0:
+        return Refusal("invalid_request", f"duration_s must be > 0, got {duration_s}")
+    return None
+
+
+def wrench_violation(wrench: Array, force_limit_n: float, torque_limit_nm: float
+                     ) -> Refusal | None:
+    """``force_limit`` / ``torque_limit`` when the wrist wrench (6,) exceeds a limit."""
+    f = math.sqrt(float(wrench[0] ** 2 + wrench[1] ** 2 + wrench[2] ** 2))
+    if f > force_limit_n:
+        return Refusal("force_limit", f"|F| = {f:.1f} N exceeded {force_limit_n:.1f} N")
+    t = math.sqrt(float(wrench[3] ** 2 + wrench[4] ** 2 + wrench[5] ** 2))
+    if t > torque_limit_nm:
+        return Refusal("torque_limit", f"|T| = {t:.2f} N m exceeded {torque_limit_nm:.2f} N m")
+    return None
+
+
+def tracking_violation(T_target: Array, T_actual: Array, max_position_m: float,
+                       max_rotation_rad: float) -> Refusal | None:
+    """``tracking_error`` when the end-effector is too far from its target pose."""
+    dp = T_target[:3, 3] - T_actual[:3, 3]
+    d = math.sqrt(float(dp @ dp))
+    if d > max_position_m:
+        return Refusal("tracking_error", f"position error {d * 100:.1f} cm exceeded "
+                                         f"{max_position_m * 100:.1f} cm")
+    # trace(R_d R^T) = sum of the element-wise product; angle = acos((trace - 1) / 2)
+    c = (float((T_target[:3, :3] * T_actual[:3, :3]).sum()) - 1.0) / 2.0
+    a = math.acos(max(-1.0, min(1.0, c)))
+    if a > max_rotation_rad:
+        return Refusal("tracking_error", f"orientation error {math.degrees(a):.1f} deg exceeded "
+                                         f"{math.degrees(max_rotation_rad):.1f} deg")
+    return None
+
+
+class SaturationWatch:
+    """Counts consecutive saturated control ticks; trips after ``max_s`` seconds of saturation."""
+
+    def __init__(self, max_s: float, dt_s: float) -> None:
+        self.max_ticks = max(1, round(max_s / dt_s))
+        self.ticks = 0
+
+    def update(self, saturated: bool) -> Refusal | None:
+        self.ticks = self.ticks + 1 if saturated else 0
+        if self.ticks >= self.max_ticks:
+            return Refusal("torque_saturation",
+                           f"joint torque demand above Franka's limits for {self.ticks} ticks")
+        return None

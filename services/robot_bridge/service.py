@@ -1,0 +1,236 @@
+"""Robot bridge service: articulate the object along the estimated model, publish the robot state.
+
+- publishes ``RobotState`` on ``handkse/{rig}/robot/state`` at ``state_rate_hz`` (wall clock),
+  while idle and while articulating (``mode`` idle / articulating / fault);
+- answers ``handkse/{rig}/robot/articulate`` (``ArticulateRequest`` -> ``ArticulateResult``);
+  without a model in the request it queries the kinematics service (``get`` on
+  ``handkse/{rig}/kinematics/model``) and falls back to the last model published there;
+  ``dry_run`` checks and plans without moving; a second request while one runs gets ``busy``;
+- subscribes ``handkse/{rig}/kinematics/model`` (FIFO; the latest is kept).
+
+Threads: the bus threads only decode requests and hand them to the single robot thread, which
+owns the backend (one articulation at a time) and publishes the state. The MuJoCo backend is
+paced to ``sim_realtime_factor`` x real time (0: as fast as possible).
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import queue
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from services.common.bus import Bus, BusError, QueryAnswer, QueryRejected, QueryRequest
+from services.common.bus import options_from_args as zenoh_options_from_args
+from services.common.config import section_from_args
+from services.common.keys import Keys
+from services.common.protocol import (
+    ArticulateRequest,
+    ArticulateResult,
+    KinematicModel,
+    ProtocolError,
+    RobotState,
+)
+from services.common.service import BusLike, Service, stop_on_signals
+from services.robot_bridge.backend import BackendState, RobotBackend, make_backend
+from services.robot_bridge.config import RobotBridgeConfig, config_from_args
+from services.robot_bridge.executor import Bridge
+
+log = logging.getLogger(__name__)
+
+ModelFetcher = Callable[[], KinematicModel | None]
+# Extra seconds a request may wait beyond its planned motion (queueing, settling, pacing).
+_REQUEST_SLACK_S = 30.0
+
+
+@dataclass
+class _Job:
+    request: ArticulateRequest
+    done: threading.Event = field(default_factory=threading.Event)
+    result: ArticulateResult | None = None
+
+
+class RobotBridgeNode:
+    """Binds a :class:`Bridge` on one backend to the bus through a :class:`Service`."""
+
+    def __init__(self, service: Service, backend: RobotBackend, config: RobotBridgeConfig,
+                 fetch_model: ModelFetcher | None = None) -> None:
+        self.service = service
+        self.backend = backend
+        self.config = config
+        self.bridge = Bridge(backend, config)
+        self.fetch_model = fetch_model
+        self.mode = "idle"
+        self._latest: KinematicModel | None = None
+        self._lock = threading.Lock()
+        self._jobs: queue.Queue[_Job] = queue.Queue()
+        self._busy = threading.Event()
+        self._next_publish = 0.0
+        self._pace: tuple[float, float] | None = None  # (wall start, backend start time)
+        keys = service.keys
+        service.subscribe(keys.kinematics_model, KinematicModel, self.on_model)
+        service.bus.declare_queryable(keys.robot_articulate, self.answer_articulate)
+
+    # --- bus side ---
+
+    def on_model(self, model: KinematicModel) -> None:
+        with self._lock:
+            self._latest = model
+
+    def answer_articulate(self, request: QueryRequest) -> QueryAnswer:
+        """Runs on a bus thread: decode, queue for the robot thread, wait for its result."""
+        if request.payload is None:
+            raise QueryRejected("robot/articulate needs an ArticulateRequest payload")
+        try:
+            req = ArticulateRequest.from_msgpack(request.payload)
+        except ProtocolError as exc:
+            self.service.reject(exc.reason, str(exc))
+            raise QueryRejected(f"bad ArticulateRequest: {exc}") from exc
+        self.service.received += 1
+        if self._busy.is_set():
+            return QueryAnswer(_refusal("busy").to_msgpack())
+        self._busy.set()
+        job = _Job(req)
+        self._jobs.put(job)
+        factor = self.config.sim_realtime_factor if self.backend.name == "mujoco" else 1.0
+        planned = req.duration_s + self.config.hold_s + self.config.settle_s
+        limit = _REQUEST_SLACK_S + (planned / factor if factor > 0 else planned)
+        if not job.done.wait(limit) or job.result is None:
+            raise QueryRejected(f"articulation did not finish within {limit:.0f} s")
+        return QueryAnswer(job.result.to_msgpack())
+
+    # --- robot thread ---
+
+    def run_robot(self, stop: threading.Event) -> None:
+        """The robot thread: execute queued requests, publish the state at the configured rate."""
+        period = 1.0 / self.config.state_rate_hz
+        while not stop.is_set():
+            try:
+                job = self._jobs.get(timeout=period)
+            except queue.Empty:
+                job = None
+            if job is not None:
+                try:
+                    job.result = self._execute(job.request, stop)
+                except Exception as exc:  # reported to the caller; the service keeps running
+                    log.exception("articulation failed")
+                    self.mode = "fault"
+                    job.result = _refusal("robot_error", f"{exc}")
+                finally:
+                    self._busy.clear()
+                    job.done.set()
+            self._publish_state(self.backend.read(), force=True)
+
+    def _execute(self, request: ArticulateRequest, stop: threading.Event) -> ArticulateResult:
+        model = request.model or self._model_from_service()
+        self._pace = None
+        result = self.bridge.articulate(request, model, now_ns=time.time_ns(),
+                                        on_tick=self._on_tick, cancel=stop)
+        self.mode = "fault" if result.reason == "robot_error" else "idle"
+        log.info("articulate: success=%s reason=%s articulated=%.4f peak %.1f N mean %.1f N",
+                 result.success, result.reason, result.articulated, result.peak_force_n,
+                 result.mean_force_n)
+        return result
+
+    def _model_from_service(self) -> KinematicModel | None:
+        """The kinematics service's current model, else the last one published."""
+        if self.fetch_model is not None:
+            try:
+                model = self.fetch_model()
+                if model is not None:
+                    return model
+            except (BusError, ProtocolError) as exc:
+                log.warning("could not query the kinematic model: %s", exc)
+        with self._lock:
+            return self._latest
+
+    def _on_tick(self, state: BackendState, moving: bool) -> None:
+        """Per control tick: publish at the state rate; pace a simulation to real time."""
+        self.mode = "articulating"
+        self._publish_state(state)
+        factor = self.config.sim_realtime_factor
+        if self.backend.name != "mujoco" or factor <= 0.0:
+            return
+        now = time.monotonic()
+        if self._pace is None:
+            self._pace = (now, state.t_s)
+            return
+        ahead = (state.t_s - self._pace[1]) / factor - (now - self._pace[0])
+        if ahead > 0.002:
+            time.sleep(ahead)
+
+    def _publish_state(self, state: BackendState, force: bool = False) -> None:
+        now = time.monotonic()
+        if not force and now < self._next_publish:
+            return
+        self._next_publish = now + 1.0 / self.config.state_rate_hz
+        keys = self.service.keys
+        msg = RobotState(seq=self.service.next_seq(keys.robot_state), stamp_ns=time.time_ns(),
+                         frame_id="world", q=np.asarray(state.q, "<f8"),
+                         dq=np.asarray(state.dq, "<f8"),
+                         T_base_ee=_rigid(state.T_base_ee),
+                         wrench=np.asarray(state.wrench, "<f8"), mode=self.mode,
+                         backend=self.backend.name)
+        self.service.publish(keys.robot_state, msg)
+
+
+def _rigid(T: np.ndarray) -> np.ndarray:
+    """A pose with its rotation re-orthonormalised (simulation round-off would fail decoding)."""
+    out = np.array(T, "<f8")
+    u, _, vt = np.linalg.svd(out[:3, :3])
+    out[:3, :3] = u @ vt
+    out[3] = (0.0, 0.0, 0.0, 1.0)
+    return out
+
+
+def _refusal(reason: str, detail: str = "") -> ArticulateResult:
+    if detail:
+        log.warning("articulate refused: %s (%s)", reason, detail)
+    return ArticulateResult(success=False, reason=reason, articulated=0.0, peak_force_n=0.0,
+                            mean_force_n=0.0, duration_s=0.0)
+
+
+def run(bus: BusLike, keys: Keys, config: RobotBridgeConfig, backend: RobotBackend,
+        stop: threading.Event, fetch_model: ModelFetcher | None = None) -> None:
+    """Run the service until ``stop`` is set (robot thread + service loop)."""
+    service = Service("robot_bridge", bus, keys)
+    node = RobotBridgeNode(service, backend, config, fetch_model)
+    robot = threading.Thread(target=node.run_robot, args=(stop,), name="robot", daemon=True)
+    robot.start()
+    try:
+        service.run(stop)
+    finally:
+        stop.set()
+        robot.join(10.0)
+        backend.close()
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """``--backend`` (overrides ``robot_bridge.backend``); the CLI adds rig/config/zenoh itself."""
+    parser.add_argument("--backend", choices=("mujoco", "panda"),
+                        help="robot backend (default: robot_bridge.backend, mujoco)")
+
+
+def main(args: argparse.Namespace) -> int:
+    """``handkse robot-bridge``: config from ``--config``/``--set``, backend from the config."""
+    config = config_from_args(args)
+    if getattr(args, "backend", None):
+        config = replace(config, backend=args.backend)
+    stop = threading.Event()
+    stop_on_signals(stop)
+    keys = Keys(args.rig)
+    backend = make_backend(config)
+    with Bus(zenoh_options_from_args(args, section_from_args(args, "zenoh"))) as bus:
+
+        def fetch() -> KinematicModel | None:
+            replies = bus.get(keys.kinematics_model, timeout=config.model_query_timeout_s)
+            return KinematicModel.from_msgpack(replies[0][1]) if replies else None
+
+        print(f"robot_bridge ready ({backend.name})", flush=True)
+        run(bus, keys, config, backend, stop, fetch)
+    return 0
