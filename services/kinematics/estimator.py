@@ -19,7 +19,9 @@ Per accepted frame ([REC] loop order of OMIP section 3):
    covariance is ``Sigma(t) + Sigma(t0) + floor I`` (OMIP's formula with its own prediction D = I).
    A joint filter starts (OMIP init from the current measurement) only once the hand moved at least
    ``prismatic_min_translation_m`` / rotated ``revolute_min_rotation_rad`` from the reference, and that
-   motion is at least ``min_motion_sigmas`` standard deviations of its noise ([REC] 3).
+   motion is at least ``min_motion_sigmas`` standard deviations of its noise ([REC] 3). While the
+   rotation is significant but still below ``revolute_min_rotation_rad``, a started prismatic filter
+   alone does not make the type known: a revolute joint cannot be ruled out before its filter runs.
 3. The sample and the joint values enter the bounded history, and model selection scores the four
    types (:mod:`services.kinematics.selection`).
 
@@ -129,11 +131,14 @@ class KinematicBelief:
 
 
 def canonical_axis_sign(u: Array) -> float:
-    """+1 or -1 so that ``sign * u`` has its largest-magnitude component positive (lowest index on
-    ties)."""
-    x, y, z = u.tolist()
-    ax, ay, az = abs(x), abs(y), abs(z)
-    big = x if (ax >= ay and ax >= az) else (y if ay >= az else z)
+    """+1 or -1 so that ``sign * u`` has its largest-magnitude component positive.
+
+    Components within 1e-6 of the largest magnitude count as tied and the lowest index wins, so
+    rounding cannot flip axes such as (0, 1, -1)/sqrt(2) between runs.
+    """
+    mags = [abs(c) for c in u.tolist()]
+    top = max(mags)
+    big = next(c for c, m in zip(u.tolist(), mags, strict=True) if m >= top - 1e-6)
     return 1.0 if big >= 0.0 else -1.0
 
 
@@ -226,6 +231,7 @@ class KinematicEstimator:
         self._disconnected = DisconnectedJoint()
         self._prismatic: PrismaticJoint | None = None
         self._revolute: RevoluteJoint | None = None
+        self._rotation_pending = False
         self._selector = ModelSelector(cfg)
         self._log_scores: Array = np.array([
             math.log(p) if p > 0.0 else -math.inf
@@ -368,10 +374,14 @@ class KinematicEstimator:
         else:
             z = se3_log_fast(D)
             w = z[3:]
-            if float(w @ w) >= cfg.revolute_min_rotation_rad ** 2 and self._significant(
-                    w, Sigma[3:, 3:] + R_D @ self._Sigma0[3:, 3:] @ R_D.T):  # OMIP 1.5 block
+            significant = self._significant(
+                w, Sigma[3:, 3:] + R_D @ self._Sigma0[3:, 3:] @ R_D.T)  # OMIP 1.5 block
+            if significant and float(w @ w) >= cfg.revolute_min_rotation_rad ** 2:
                 self._revolute = RevoluteJoint.from_twist(cfg, z, self._Sigma0)
                 self._selector.history.backfill_revolute(self._revolute.u)
+            # A significant rotation below the start threshold: a revolute joint cannot be ruled
+            # out before its filter runs, so no type is published meanwhile (_type_known).
+            self._rotation_pending = significant and self._revolute is None
 
         # 3. History and model selection.
         self._selector.add(disp, R_D,
@@ -404,8 +414,10 @@ class KinematicEstimator:
         cfg = self.config
         if self._updates < cfg.min_updates_for_type or self._last_stamp is None:
             return False
-        if self._prismatic is not None or self._revolute is not None:
+        if self._revolute is not None:
             return True
+        if self._prismatic is not None:
+            return not self._rotation_pending
         return (self._last_stamp - self._stamp0) * 1e-9 >= cfg.min_still_duration_for_rigid_s
 
     def _make_belief(self) -> KinematicBelief:
@@ -455,6 +467,7 @@ class KinematicEstimator:
             "revolute": None if self._revolute is None else self._revolute.to_state(),
             "selector": self._selector.to_state(),
             "log_scores": self._log_scores.copy(),
+            "rotation_pending": self._rotation_pending,
         }
 
     @classmethod
@@ -478,6 +491,7 @@ class KinematicEstimator:
                          else RevoluteJoint.from_state(config, d["revolute"]))
         est._selector = ModelSelector.from_state(config, d["selector"])
         est._log_scores = np.array(d["log_scores"], dtype=float)
+        est._rotation_pending = bool(d.get("rotation_pending", False))
         est._belief = est._make_belief()
         return est
 

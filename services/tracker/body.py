@@ -19,24 +19,28 @@ Motion models, all predicted from the same posterior (OMIP §7.2):
   win; correcting the velocity with the landmarks directly would overshoot by the static lag.
 - ``kinematic``: the caller's predicted pose ``T_k`` for this stamp with its 6x6 covariance
   ``Sigma_k``; ``xi_p = log(T_k T^-1) / dt``; ``P_p = blkdiag(Sigma_k + Q_pose, P_cv twist)``.
+  Offered only when it is :func:`informative`: nowhere less certain than the constant-velocity
+  prediction (a joint filter that has just started predicts a pose uncertain by tens of degrees;
+  in a frame with gross outliers such a vague prediction is the most likely one and its wide gates
+  and prior let the outliers move the pose, which then corrupts the joint filter in turn).
 
 Model choice: the model under which the stacked landmark innovation is most likely,
 ``max_m log N(y_m; 0, H C_m H' + R)``, where ``C_m`` is the pose uncertainty the model itself
 carries: ``P_pose`` (static: nothing moved), ``(F P F')_pose`` (constant velocity, with its
 velocity uncertainty), ``Sigma_k`` (kinematic: ``services/kinematics/prediction.py`` gives the
 joint's share and leaves process noise to the caller). The process noise ``Q`` that every model
-adds alike is left out of the comparison: at Table-I scale it is ~0.9 m and 1.7 rad per frame,
-and inside ``S`` it would drown every difference between the predicted means (the choice would
-follow noise). This is OMIP's choice (predicted feature positions against the measurements,
-§7.3) made probabilistic. The correction then starts from the winner's full ``P_p``.
-With Table-I's covariances (landmark noise ~20 cm), predictions that differ by less than a few cm
-are statistically alike and the constant-velocity prediction carries Table I's large velocity
-noise, so ``static`` (smallest ``C``) wins unless a kinematic prediction is given; the twist is
-still estimated (see ``static``). With covariances at the scale of the data,
-``constant_velocity`` wins sustained motion.
+adds alike is left out of the comparison: Table I's is ~3 cm and 3 deg per frame (in the
+physical units of ``TrackerConfig.internal``), and inside ``S`` it would drown every difference
+between the predicted means (the choice would follow noise). This is OMIP's choice (predicted
+feature positions against the measurements, §7.3) made probabilistic. The correction then starts
+from the winner's full ``P_p``. All covariances are physical (m^2, rad^2; ``TrackerConfig.
+internal``), so a kinematic prediction's ``Sigma_k`` and ``R`` are on the same scale; Table I's
+large velocity noise makes ``static`` win most frames of a slow hand, ``constant_velocity``
+wins sustained motion, and the twist is estimated either way (see ``static``).
 
-Measurements: the filtered landmarks ``z_i`` (tracking frame) with isotropic covariance
-``R_i = r_i I3`` (``R_rb``), ``h_i(T) = T p_i`` for the landmark's fixed body-frame coordinates
+Measurements: the filtered landmarks ``z_i`` (tracking frame) with covariance ``R_i`` (``R_rb``,
+3x3, anisotropic with the landmark filters' covariance; ``r_i I3`` accepted wherever a variance
+``r_i`` is given), ``h_i(T) = T p_i`` for the landmark's body-frame coordinates
 ``p_i``, and ``H_i = [I3, -[T_hat p_i]x, 0]`` (3x12). All landmarks are absorbed in one stacked
 update. Because ``R = blkdiag(R_i)``, the stacked quantities reduce to 6x6 information sums
 (Woodbury), with ``A = sum H_i' R_i^-1 H_i``, ``b = sum H_i' R_i^-1 y_i`` and the pose block
@@ -55,8 +59,8 @@ Gating (``M_rb``), per landmark, before the update:
 2. leave-one-out: against the landmark predicted from the prior *and all other landmarks*,
    computed exactly as the standardised posterior residual (see
    :func:`posterior_residual_passes`). With Table-I's process noise the prior prediction is
-   uncertain to ~0.9 m, so gate 1 only rejects jumps above ~22 cm; gate 2 carries only the
-   uncertainty left once the other landmarks are seen and rejects jumps of a few cm.
+   uncertain to ~3 cm, so gate 1 only rejects jumps of many cm; gate 2 carries only the
+   uncertainty left once the other landmarks are seen and rejects jumps of ~1-2 landmark sigmas.
 """
 
 from __future__ import annotations
@@ -75,6 +79,7 @@ from services.common.se3 import (
     se3_log,
     skew,
 )
+from services.tracker.landmarks import inv_sym3
 
 Array = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
@@ -123,14 +128,46 @@ def predicted_points(T: Array, points_body: Array) -> Array:
     return points_body @ np.swapaxes(T[..., :3, :3], -1, -2) + T[..., None, :3, 3]
 
 
-def information_sums(q: Array, y: Array, w: Array) -> tuple[Array, Array, Array]:
-    """``A = sum w_i H_i' H_i`` (m, 6, 6), ``b = sum w_i H_i' y_i`` (m, 6), ``c = sum w_i |y_i|^2``.
+def as_covariances(r: Array) -> Array:
+    """Measurement covariances (n, 3, 3) from per-landmark variances ``r`` (n,) (``r_i I3``) or
+    from covariances (n, 3, 3) (returned as they are)."""
+    r = np.asarray(r, dtype=float)
+    if r.ndim == 1:
+        return r[:, None, None] * _I3
+    return r
+
+
+def information_sums(q: Array, y: Array, W: Array) -> tuple[Array, Array, Array]:
+    """``A = sum H_i' W_i H_i`` (m, 6, 6), ``b = sum H_i' W_i y_i`` (m, 6),
+    ``c = sum y_i' W_i y_i`` (m,).
 
     ``q`` (m, n, 3) predicted landmarks (``H_i = [I, -[q_i]x]``), ``y`` (m, n, 3) innovations,
-    ``w`` (n,) inverse variances ``1 / r_i`` (0 = not used). With ``Q = [q]x``:
-    ``H'H = [[I, -Q], [Q, |q|^2 I - q q']]`` and ``H'y = [y, q x y]``; the cross products are
-    summed as ``vee(M - M')`` with ``M = sum y q'``.
+    ``W`` the inverse measurement covariances ``R_i^-1``: (n, 3, 3), or (n,) inverse variances
+    of isotropic ``R_i = r_i I3`` (0 = not used). With ``Q_i = [q_i]x``:
+    ``H'WH = [[W, -W Q], [Q W, -Q W Q]]`` and ``H'W y = [W y, q x (W y)]``.
     """
+    W = np.asarray(W, dtype=float)
+    if W.ndim == 1:
+        return _information_sums_isotropic(q, y, W)
+    m = q.shape[0]
+    Qx = skew_batch(q)  # (m, n, 3, 3)
+    WQ = W[None] @ Qx
+    Wy = np.einsum("nij,mnj->mni", W, y)
+    A = np.empty((m, 6, 6))
+    A[:, :3, :3] = W.sum(axis=0)
+    A[:, :3, 3:] = -WQ.sum(axis=1)
+    A[:, 3:, :3] = np.swapaxes(A[:, :3, 3:], 1, 2)
+    A[:, 3:, 3:] = -(Qx @ WQ).sum(axis=1)
+    b = np.empty((m, 6))
+    b[:, :3] = Wy.sum(axis=1)
+    b[:, 3:] = np.einsum("mnij,mnj->mi", Qx, Wy)  # sum q x (W y)
+    c = np.sum(y * Wy, axis=(1, 2))
+    return A, b, c
+
+
+def _information_sums_isotropic(q: Array, y: Array, w: Array) -> tuple[Array, Array, Array]:
+    """:func:`information_sums` for ``W_i = w_i I3``: ``H'H = [[I, -Q], [Q, |q|^2 I - q q']]``
+    and ``H'y = [y, q x y]``; the cross products are summed as ``vee(M - M')``, ``M = sum y q'``."""
     m = q.shape[0]
     qw = q * w[:, None]
     yw = y * w[:, None]
@@ -187,63 +224,67 @@ def mahalanobis_sq(S: Array, v: Array) -> tuple[Array, Array]:
 
 def prior_gate_passes(q: Array, y: Array, P_pose: Array, r: Array, threshold: float
                       ) -> BoolArray:
-    """``sqrt(y_i' (H_i P H_i' + r_i I)^-1 y_i) < threshold`` (m, n) for each hypothesis.
+    """``sqrt(y_i' (H_i P H_i' + R_i)^-1 y_i) < threshold`` (m, n) for each hypothesis.
 
-    ``q``, ``y`` (m, n, 3) predicted landmarks and innovations, ``P_pose`` (m, 6, 6), ``r`` (n,).
-    ``S_i >= r_i I``, so ``|y_i|^2 / r_i < threshold^2`` already passes; the exact distance is
-    computed only for the landmarks that fail this bound (usually none).
+    ``q``, ``y`` (m, n, 3) predicted landmarks and innovations, ``P_pose`` (m, 6, 6), ``r`` the
+    measurement covariances (n, 3, 3) or isotropic variances (n,). ``S_i >= R_i``, so
+    ``y_i' R_i^-1 y_i < threshold^2`` already passes; the exact distance is computed only for
+    the landmarks that fail this bound (usually none).
     """
-    ok: BoolArray = np.sum(y * y, axis=-1) < (threshold * threshold) * r
+    R = as_covariances(r)
+    d2_R, _ = mahalanobis_sq(R[None], y)
+    ok: BoolArray = d2_R < threshold * threshold
     if not ok.all():
         mi, ni = np.nonzero(~ok)
         H = measurement_jacobians(q[mi, ni])
-        S = H @ P_pose[mi] @ np.swapaxes(H, -1, -2) + r[ni, None, None] * _I3
+        S = H @ P_pose[mi] @ np.swapaxes(H, -1, -2) + R[ni]
         d2, _ = mahalanobis_sq(S, y[mi, ni])
         ok[mi, ni] = d2 < threshold * threshold
     return ok
 
 
-def posterior_residual_passes(q: Array, y: Array, r: Array, P_pose: Array, A: Array, b: Array,
-                              threshold: float) -> BoolArray:
-    """Leave-one-out gate (n,): is each landmark within ``threshold`` of its prediction from the
-    prior and all *other* landmarks?
+def posterior_residuals(q: Array, y: Array, r: Array, P_pose: Array, A: Array, b: Array
+                        ) -> tuple[Array, Array]:
+    """Leave-one-out residuals of n landmarks: ``(e, C)``, ``e`` (n, 3), ``C`` (n, 3, 3).
 
-    For a linear-Gaussian update that distance equals the standardised posterior residual,
+    For a linear-Gaussian update, the innovation of landmark i against its prediction from the
+    prior and all *other* landmarks, standardised, equals the standardised posterior residual:
     ``d_i^2 = e_i' C_i^-1 e_i`` with ``e_i = y_i - H_i delta`` and ``C_i = R_i - H_i Sigma H_i'``
     (``delta``, ``Sigma``: posterior mean and covariance of the pose error given every landmark
-    in ``A``, ``b``), so no per-landmark refit is needed. Since ``(r_i - t_i) I <= C_i <= r_i I``
-    with ``t_i = trace(H_i Sigma H_i')``, the bounds ``|e_i|^2 / r_i <= d_i^2 <=
-    |e_i|^2 / (r_i - t_i)`` settle most landmarks; the exact distance is computed for the rest.
-    A landmark that alone pins part of the pose (``C_i`` singular) passes: there is nothing to
-    compare it with. ``q``, ``y`` (n, 3) predicted landmarks and innovations, ``r`` (n,).
+    in ``A``, ``b``), so no per-landmark refit is needed. ``q``, ``y`` (n, 3) predicted landmarks
+    and innovations, ``r`` covariances (n, 3, 3) or isotropic variances (n,).
     """
     sol = np.linalg.solve(_I6 + A @ P_pose, np.column_stack([b, A]))
     delta = P_pose @ sol[:, 0]  # P X b
     Sigma = P_pose - P_pose @ sol[:, 1:] @ P_pose  # P - P X A P
     e = y - (delta[:3] + q @ skew(delta[3:]).T)  # y - H delta, H delta = rho + w x q
-    e2 = np.sum(e * e, axis=1)
-    St, Str, Sr = Sigma[:3, :3], Sigma[:3, 3:], Sigma[3:, 3:]
-    v = np.array([Str[2, 1] - Str[1, 2], Str[0, 2] - Str[2, 0], Str[1, 0] - Str[0, 1]])
-    # trace(H Sigma H') = tr St - 2 q.vee(Str - Str') + |q|^2 tr Sr - q' Sr q, H = [I, -[q]x]
-    qq = np.sum(q * q, axis=1)
-    t = np.trace(St) - 2.0 * (q @ v) + qq * np.trace(Sr) - np.sum((q @ Sr) * q, axis=1)
-    thr2 = threshold * threshold
-    ok: BoolArray = e2 < thr2 * (r - t)
-    unsure = ~ok & (e2 < thr2 * r)
-    if unsure.any():
-        H = measurement_jacobians(q[unsure])
-        C = r[unsure, None, None] * _I3 - H @ Sigma @ np.swapaxes(H, -1, -2)
-        d2, det = mahalanobis_sq(C, e[unsure])
-        ok[unsure] = (det <= 0.0) | (d2 < thr2)
+    H = measurement_jacobians(q)
+    C = as_covariances(r) - H @ Sigma @ np.swapaxes(H, -1, -2)
+    return e, C
+
+
+def posterior_residual_passes(q: Array, y: Array, r: Array, P_pose: Array, A: Array, b: Array,
+                              threshold: float) -> BoolArray:
+    """Leave-one-out gate (n,): is each landmark within ``threshold`` of its prediction from the
+    prior and all *other* landmarks? (:func:`posterior_residuals`.) A landmark that alone pins
+    part of the pose (``C_i`` singular) passes: there is nothing to compare it with."""
+    e, C = posterior_residuals(q, y, r, P_pose, A, b)
+    d2, det = mahalanobis_sq(C, e)
+    ok: BoolArray = (det <= 0.0) | (d2 < threshold * threshold)
     return ok
 
 
 def innovation_covariance(prior: Prediction, points_body: Array, r: Array) -> Array:
-    """Stacked ``S = H P_p H' + blkdiag(r_i I3)`` (3n, 3n) for body points (n, 3) (diagnostics)."""
+    """Stacked ``S = H P_p H' + blkdiag(R_i)`` (3n, 3n) for body points (n, 3) (diagnostics);
+    ``r`` covariances (n, 3, 3) or isotropic variances (n,)."""
     n = points_body.shape[0]
     H = np.zeros((3 * n, 12))
     H[:, :6] = measurement_jacobians(predicted_points(prior.T, points_body)).reshape(3 * n, 6)
-    return H @ prior.P @ H.T + np.diag(np.repeat(r, 3))
+    R = np.zeros((3 * n, 3 * n))
+    for i, Ri in enumerate(as_covariances(r)):
+        R[3 * i:3 * i + 3, 3 * i:3 * i + 3] = Ri
+    out: Array = H @ prior.P @ H.T + R
+    return out
 
 
 @dataclass(frozen=True, eq=False)
@@ -317,6 +358,22 @@ def body_to_frame(T: Array, M: Array) -> Array:
     return G @ M @ G.T
 
 
+def informative(C_k: Array, P_cv_pose: Array) -> bool:
+    """Whether a kinematic prediction's pose covariance ``C_k`` (6, 6) is nowhere larger than
+    the constant-velocity prediction's (with its process noise) ``P_cv_pose`` (6, 6), i.e.
+    ``P_cv_pose - C_k`` is positive semi-definite.
+
+    A vaguer prediction (a joint filter that has just started, whose axis and point are still
+    uncertain by tens of degrees and centimetres) adds nothing the constant-velocity model does
+    not already say, but it would win the model choice in exactly the wrong frames: when gross
+    outliers fit no precise prediction, the vaguest model is the most likely one, and its wide
+    gates and prior would let the outliers move the pose.
+    """
+    D = P_cv_pose - 0.5 * (C_k + C_k.T)
+    scale = max(float(np.abs(P_cv_pose).max()), 1e-300)
+    return bool(np.linalg.eigvalsh(0.5 * (D + D.T))[0] >= -1e-12 * scale)
+
+
 class HandBodyEkf:
     """EKF for the hand body: ``T`` (4, 4), ``xi`` (6,), ``P`` (12, 12); see module docstring.
 
@@ -365,7 +422,7 @@ class HandBodyEkf:
         out = [Prediction("static", self.T.copy(), self.xi.copy(), self.P + Q, P_pose.copy()),
                Prediction("constant_velocity", E @ self.T, self.xi.copy(), P_cv,
                           0.5 * (FPFt[:6, :6] + FPFt[:6, :6].T))]
-        if kinematic is not None:
+        if kinematic is not None and informative(kinematic[1], P_cv[:6, :6]):
             T_k, Sigma_k = kinematic
             C_k = 0.5 * (Sigma_k + Sigma_k.T)
             P_k = np.zeros((12, 12))
@@ -377,9 +434,11 @@ class HandBodyEkf:
 
     def update(self, prior: Prediction, z: Array, points_body: Array, r: Array) -> None:
         """Correct ``prior`` with landmarks ``z`` (n, 3) of body points ``points_body`` (n, 3)
-        and noise ``R_i = r_i I3`` (r: (n,)): one stacked EKF update (module docstring)."""
+        and noise ``R_i`` (``r``: covariances (n, 3, 3) or isotropic variances (n,)): one
+        stacked EKF update (module docstring)."""
         q = predicted_points(prior.T[None], points_body)
-        A, b, _ = information_sums(q, z[None] - q, 1.0 / r)  # y = z - h(x_p)
+        W, _ = inv_sym3(as_covariances(r))
+        A, b, _ = information_sums(q, z[None] - q, W)  # y = z - h(x_p)
         self._set(corrected(prior, A[0], b[0]))
 
     def update_chosen(self, predictions: list[Prediction], step: BodyStep) -> None:
@@ -426,7 +485,8 @@ def select_and_gate(predictions: list[Prediction], z: Array, points_body: Array,
     Selection uses the landmarks that pass the prior gate under at least one model (a landmark
     that fits no model is an outlier and would only add noise to the comparison); the update set
     is those passing both the prior and the leave-one-out gate of the winner. ``gate=False``
-    (ablation) uses and accepts every landmark. z, points_body (n, 3), r (n,) variances.
+    (ablation) uses and accepts every landmark. z, points_body (n, 3), r the measurement
+    covariances (n, 3, 3) or isotropic variances (n,).
     """
     m, n = len(predictions), z.shape[0]
     T = np.stack([p.T for p in predictions])
@@ -434,16 +494,16 @@ def select_and_gate(predictions: list[Prediction], z: Array, points_body: Array,
     C = np.stack([p.C for p in predictions])
     q = predicted_points(T, points_body)  # (m, n, 3)
     y = z[None] - q
-    w_all = 1.0 / r
+    R = as_covariances(r)
+    W_all, det_R = inv_sym3(R)
     if gate:
-        prior_ok = prior_gate_passes(q, y, P_pose, r, threshold)  # (m, n)
+        prior_ok = prior_gate_passes(q, y, P_pose, R, threshold)  # (m, n)
         select = prior_ok.any(axis=0)
     else:
         prior_ok = np.ones((m, n), dtype=bool)
         select = prior_ok[0]
-    w = np.where(select, w_all, 0.0)
-    A, b, c = information_sums(q, y, w)
-    ll = log_likelihoods(C, A, b, c, float(3.0 * np.log(r[select]).sum()), int(select.sum()))
+    A, b, c = information_sums(q, y, np.where(select[:, None, None], W_all, 0.0))
+    ll = log_likelihoods(C, A, b, c, float(np.log(det_R[select]).sum()), int(select.sum()))
     best = int(np.argmax(ll))  # the first of equals wins: static before constant_velocity
     accepted = prior_ok[best].copy()
     if gate and accepted.sum() >= 2:
@@ -451,12 +511,12 @@ def select_and_gate(predictions: list[Prediction], z: Array, points_body: Array,
             A_best, b_best = A[best], b[best]
         else:
             A_w, b_w, _ = information_sums(q[best:best + 1], y[best:best + 1],
-                                           np.where(accepted, w_all, 0.0))
+                                           np.where(accepted[:, None, None], W_all, 0.0))
             A_best, b_best = A_w[0], b_w[0]
-        accepted &= posterior_residual_passes(q[best], y[best], r, P_pose[best], A_best, b_best,
+        accepted &= posterior_residual_passes(q[best], y[best], R, P_pose[best], A_best, b_best,
                                               threshold)
     if not np.array_equal(accepted, select):
-        A, b, _ = information_sums(q, y, np.where(accepted, w_all, 0.0))
+        A, b, _ = information_sums(q, y, np.where(accepted[:, None, None], W_all, 0.0))
     return BodyStep(model=best, log_likelihood=ll, accepted=accepted, rejected=~accepted,
                     y=y[best], A=A, b=b)
 
@@ -481,6 +541,7 @@ __all__ = [
     "corrected",
     "correction",
     "information_sums",
+    "informative",
     "innovation_covariance",
     "log_likelihoods",
     "mahalanobis_sq",

@@ -1,39 +1,66 @@
 """Configuration of the hand tracker: landmark KFs, weighted RANSAC and the hand-body EKF.
 
-Defaults are the ICRA-25 paper's Table I values (``helping-hand-kse-icra2025.tex``).
+The Table-I fields keep the ICRA-25 paper's values (``helping-hand-kse-icra2025.tex``); the
+physical terms below them are ours (what the paper leaves open), each with its reason.
 
 Units and dt-scaling of Table I
 -------------------------------
-All values are SI: positions in m, rotations in rad, velocities in m/s and rad/s, so a variance
-is in m^2, rad^2, (m/s)^2 or (rad/s)^2. Initial covariances ``P0`` and the measurement noise
-``R_lm`` are absolute. Process noises ``Q`` are the variance added **per nominal frame** of
-``nominal_dt_s`` = 1/30 s (the Azure Kinect's 30 Hz), and are scaled linearly with the elapsed
-time, ``Q_k = Q * dt / nominal_dt_s``, so a dropped frame adds the noise of two frames.
+Positions in m, rotations in rad, velocities in m/s and rad/s. Initial covariances ``P0`` and
+the measurement noise ``R_lm`` are absolute. Process noises ``Q`` are the variance added **per
+nominal frame** of ``nominal_dt_s`` = 1/30 s (the Azure Kinect's 30 Hz), and are scaled linearly
+with the elapsed time, ``Q_k = Q * dt / nominal_dt_s``, so a dropped frame adds the noise of two.
 
-Why this reading: the paper's filters ran at a fixed 30 Hz, where a per-step ``Q`` is the simplest
+Why per frame: the paper's filters ran at a fixed 30 Hz, where a per-step ``Q`` is the simplest
 implementation, and it is the one reading under which *every* Table-I threshold acts at a
-physically meaningful distance:
+physically meaningful distance (numbers in Table-I units, ``u``):
 
-- landmark gate ``M_lm = 0.19``: the steady-state innovation covariance is S ~ 0.22 m^2 per axis,
-  so measurements that jump by more than ~9 cm from the landmark prediction are outliers;
+- landmark gate ``M_lm = 0.19``: the steady-state innovation covariance is S ~ 0.22 u per axis,
+  so measurements that jump by more than ~0.09 sqrt(u) from the landmark prediction are outliers;
 - loss threshold ``trace(P_lm) >= 0.3``: the steady-state posterior trace is 0.12 and one frame
   of process noise adds 0.39, so a landmark whose correction is skipped once (missing or outlier)
   is dropped and re-initialised from its next measurement; ``3 * P0`` = 0.27 stays just below it;
-- body gate ``M_rb = 0.25``: S ~ 0.8 m^2 (dominated by ``Q_rb``), i.e. ~22 cm against the
-  predicted landmark; the leave-one-out check at the same threshold (``body.py``) carries only
-  the uncertainty left once the other landmarks are seen and acts at ~3-6 cm on the filtered
-  landmark (saliency 0.5 to 1.5), i.e. on jumps of ~4-7 cm in the detections;
+- body gate ``M_rb = 0.25``: S ~ 0.8 u (dominated by ``Q_rb``) against the predicted landmark;
+  the leave-one-out check at the same threshold (``body.py``) carries only the uncertainty left
+  once the other landmarks are seen, so it acts at ~1-2 landmark sigmas of the filtered landmark;
 - the landmark KF gain is ~0.78, so the filtered landmark lags the measurement by ~0.3 frame.
 
-Read as variances per second instead (``Q_k = Q dt``), the landmark filter would smooth with a
-gain of ~0.27 and lag fast hand motion by several cm. Either way the covariances are ~(20 cm)^2,
-far above real detector noise (~1 cm): Table I is a consistent filter only up to a global
-covariance scale, for which its tiny Mahalanobis thresholds compensate. Scaling every covariance
-(``P0``, ``Q``, ``R`` and the loss threshold) by ``c`` and the thresholds by ``1/sqrt(c)`` leaves
-every gain and gate decision unchanged (only the motion-model choice and the reported covariance
-scale change); with ``c = sigma^2 / r_lm`` the reported covariances match landmark noise
-``sigma`` (the tests' NEES check: ~4.9 for 6 DOF, slightly conservative because a landmark
-filter's covariance overstates its error when the hand moves more smoothly than ``Q_lm``).
+The variance unit (``variance_unit_m2``)
+-----------------------------------------
+Read literally in m^2, Table I's covariances are ~(20 cm)^2, far above any landmark detector's
+noise: Table I is a consistent filter only up to one global covariance scale, for which its tiny
+Mahalanobis thresholds compensate. We fix that scale by physics: one Table-I unit is
+``variance_unit_m2`` = 1e-3 m^2, chosen so that ``R_lm`` = 0.05 u is the detector's lateral
+noise, (7.1 mm)^2 per axis (MediaPipe Hands, arXiv:2006.10214, Table 2: mean 2-D error 10 % of
+the palm size, ~8.5 mm for an 8.5 cm palm, i.e. 6.8 mm per axis). :meth:`TrackerConfig.internal`
+multiplies every Table-I covariance by the unit and divides every Table-I Mahalanobis threshold
+by its square root: every Kalman gain and gate decision is exactly Table I's, but innovations,
+likelihoods and covariances are now physical, so they can be combined with physical quantities
+(the articulation variance, the kinematic level's predicted pose) and the motion-model choice
+compares likelihoods in consistent units. ``variance_unit_m2 = 1`` is the literal SI reading.
+
+Physical terms (beyond Table I)
+-------------------------------
+- ``articulation_std_rad``: the body model holds the hand rigid, but only the palm is; fingers
+  flex by a few degrees while holding an object. ``R_rb = s_k P_lm + a_k I`` adds each
+  landmark's variance from an independent flexion of this std at every joint between it and the
+  palm (``landmarks.articulation_variances``). 0.15 rad (~9 deg) of grip adjustment per joint;
+  tuning split (8 seeds): 0.08 -> 5.6 deg mean tangent error, 0.15 -> 5.1, 0.25 -> 5.1.
+- ``depth_variance_factor``: anisotropic ``R_lm`` about the viewing ray (``landmarks.
+  ray_measurement_covariances``). The depth read at a correctly detected fingertip is precise
+  (mm-level skin surface), but a detection a few pixels off a thin finger reads the background
+  or a mixed pixel, cm behind: a mixture whose spread along the ray exceeds the lateral one,
+  though not by much once the gates remove the gross outliers. 2 (along-ray variance twice the
+  lateral) on the tuning split (16 seeds): 1 -> 5.6 deg mean / 4.4 median tangent error, 2 ->
+  4.9 / 4.2, 4 -> 5.6 / 4.4.
+- ``template_memory_frames``, ``template_candidate_frames``: the body model (landmark
+  coordinates in the body frame) is refined from every accepted frame and completed with the
+  landmarks that were not RANSAC inliers at initialisation (``HandTracker._refine_template``);
+  a model from a 5-frame window carries that window's (slowly varying) detector error forever.
+  Tuning split: per-frame rotation error 3.7 -> 3.1 deg RMS per axis.
+- ``max_correlation_factor``: the published covariance is inflated by the measured
+  frame-to-frame correlation of the fit residuals (``HandTracker.correlation_factor``, typically
+  2.5-4.5 on the synthetic data): the kinematic filters treat successive poses as independent.
+  Tuning split: 22 -> 10 deg mean tangent error before the other changes.
 
 Body-EKF blocks are ordered (translation, rotation, linear velocity, angular velocity), our
 reading of Table I's ``P0_rb``/``Q_rb`` (OMIP_JOINT_FILTERS.md §7.6), and are hand-centred:
@@ -42,9 +69,16 @@ noise of the hand about its own origin, carried into the tracking frame with ``A
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import math
+from dataclasses import dataclass, fields, replace
 
 HAND_SELECTIONS = ("best", "left", "right")
+_TABLE_ONE_COVARIANCES = frozenset({
+    "p0_lm_position_m2", "p0_lm_velocity_m2ps2", "q_lm_position_m2", "q_lm_velocity_m2ps2",
+    "r_lm_m2", "lm_loss_trace_m2", "p0_rb_position_m2", "p0_rb_rotation_rad2",
+    "p0_rb_linear_velocity_m2ps2", "p0_rb_angular_velocity_rad2ps2", "q_rb_position_m2",
+    "q_rb_rotation_rad2", "q_rb_linear_velocity_m2ps2", "q_rb_angular_velocity_rad2ps2"})
+_TABLE_ONE_GATES = frozenset({"mahalanobis_lm", "mahalanobis_rb", "ransac_inlier_mahalanobis"})
 
 
 @dataclass(frozen=True)
@@ -92,13 +126,33 @@ class TrackerConfig:
     # Re-initialisation: drop the body after this long without a correction.
     reinit_after_s: float = 0.5
 
-    # Publish covariances in metres/radians: scale by the smoothed a-posteriori variance of unit
-    # weight of the body fit (Table I's covariances hold only up to a global scale).
+    # Publish covariances scaled by the smoothed a-posteriori variance of unit weight of the body
+    # fit (1 when the noise model is right) and by the residual-correlation factor.
     calibrate_covariance: bool = True
     variance_factor_smoothing: float = 0.1  # per-frame EMA weight of the variance factor
+    # Upper bound of the published covariance's inflation for frame-to-frame error correlation,
+    # (1 + rho) / (1 - rho) (1 = no inflation; HandTracker.correlation_factor).
+    max_correlation_factor: float = 30.0
 
-    # Ablation switch: False = uniform R_rb, no saliency factors (wrist used), no gating,
-    # uniform RANSAC sampling and residual weights.
+    # --- Physical terms (beyond Table I; see the module docstring) ---
+    # Physical variance of one Table-I covariance unit [m^2 per unit]: R_lm = 0.05 units is the
+    # detector's lateral noise, (7.1 mm)^2 (MediaPipe Hands: mean 2-D error 10 % of the palm).
+    # 1.0 reads Table I literally in SI.
+    variance_unit_m2: float = 1e-3
+    # Along-ray variance of R_lm as a multiple of the lateral one (1 = the paper's isotropic R).
+    depth_variance_factor: float = 2.0
+    # Flexion std of each finger joint [rad] (articulation variance added to R_rb; 0 = rigid).
+    articulation_std_rad: float = 0.15
+    # Body-model refinement (HandTracker._refine_template): running mean of each landmark's
+    # body-frame coordinates over up to this many frames (0 = fixed at initialisation) ...
+    template_memory_frames: int = 60
+    # ... and landmarks outside the initial model join it after this many observations.
+    template_candidate_frames: int = 10
+
+    # Ablation switch: False = uniform isotropic R_rb = R_lm (no saliency factors, no filter
+    # covariance, no articulation; wrist used), isotropic R_lm, no gating at either level (nor
+    # the body-model refinement's residual gate), uniform RANSAC sampling and residual weights.
+    # Everything else is the same pipeline (covariance calibration, body-model refinement, ...).
     use_uncertainty_models: bool = True
 
     # Which detected hand to track: "left", "right", or "best" (the highest-scoring hand when
@@ -153,9 +207,40 @@ class TrackerConfig:
                              f"got {self.hand_selection!r}")
         if self.seed < 0:
             raise ValueError(f"seed must be >= 0, got {self.seed}")
+        for name in ("variance_unit_m2", "depth_variance_factor"):
+            value = getattr(self, name)
+            if not isinstance(value, (int, float)) or not 0.0 < value < float("inf"):
+                raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
+        if not 1.0 <= self.max_correlation_factor < float("inf"):
+            raise ValueError(f"max_correlation_factor must be >= 1, got {self.max_correlation_factor}")
+        if not 0.0 <= self.articulation_std_rad < float("inf"):
+            raise ValueError(f"articulation_std_rad must be >= 0, got {self.articulation_std_rad}")
+        if self.template_memory_frames < 0 or self.template_candidate_frames < 0:
+            raise ValueError("template_memory_frames and template_candidate_frames must be >= 0")
         if not 0.0 < self.variance_factor_smoothing <= 1.0:
             raise ValueError("variance_factor_smoothing must be in (0, 1], got "
                              f"{self.variance_factor_smoothing}")
+
+    def internal(self) -> TrackerConfig:
+        """This config in the filters' units: Table I's covariances in m^2/rad^2.
+
+        Every Table-I covariance (``p0_*``, ``q_*``, ``r_lm_m2``, ``lm_loss_trace_m2``) is
+        multiplied by ``variance_unit_m2`` and every Table-I Mahalanobis threshold
+        (``mahalanobis_lm``, ``mahalanobis_rb``, ``ransac_inlier_mahalanobis``) divided by its
+        square root, so the gains and the gate decisions are exactly Table I's while innovations,
+        likelihoods and covariances are physical (module docstring). The physical fields (unit,
+        depth, articulation, depth gate) are unchanged; the result has ``variance_unit_m2 = 1``.
+        """
+        c = self.variance_unit_m2
+        if c == 1.0:
+            return self
+        values: dict[str, float] = {}
+        for f in fields(self):
+            if f.name in _TABLE_ONE_COVARIANCES:
+                values[f.name] = getattr(self, f.name) * c
+            elif f.name in _TABLE_ONE_GATES:
+                values[f.name] = getattr(self, f.name) / math.sqrt(c)
+        return replace(self, variance_unit_m2=1.0, **values)  # type: ignore[arg-type]
 
     def saliency_factors(self) -> tuple[float, ...]:
         """s_k per landmark in MediaPipe order (21 values); the wrist's entry is 1.0 (unused)."""

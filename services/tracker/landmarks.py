@@ -1,16 +1,18 @@
 """Landmark level: one constant-velocity Kalman filter per hand landmark, batched over landmarks.
 
-Paper §III.A. Each filter has the state ``x = [l, m]`` (position in m, velocity in m/s, both in the
-tracking frame), ``F = [[I, dt I], [0, I]]``, ``H = [I, 0]``, noise ``P0``, ``Q``, ``R`` from
-:class:`TrackerConfig`. Every array is stacked over the N landmarks of all hand slots (21 per
-hand), so a frame costs a fixed number of numpy calls with no Python loop over landmarks.
+Paper §III.A. Each filter has the state ``x = [l, m]`` (position, velocity, both in the tracking
+frame), ``F = [[I, dt I], [0, I]]``, ``H = [I, 0]``, noise ``P0``, ``Q``, ``R`` from
+:class:`TrackerConfig` (covariances in Table-I units, see the config docstring). Every array is
+stacked over the N landmarks of all hand slots (21 per hand), so a frame costs a fixed number of
+numpy calls with no Python loop over landmarks.
 
-Isotropy: ``P0``, ``Q`` and ``R = r_lm I3`` are all multiples of ``I3`` per block, and rotating
-``R`` into the world frame (``R_wc R R_wc'``) leaves it unchanged, so every filter's 6x6
-covariance stays exactly ``kron(C, I3)`` with a 2x2 per-axis covariance
-``C = [[pp, pv], [pv, vv]]``. The bank stores ``C`` (as three arrays) and runs the textbook
-equations in that form; :meth:`LandmarkFilterBank.covariance` rebuilds the 6x6 ``P``.
-The tests check it against a plain 6x6 Kalman filter.
+Covariance: each filter keeps its full 6x6 ``P`` (``P`` (N, 6, 6)), because the measurement
+noise need not be isotropic: a back-projected RGB-D landmark is located in the image far better
+than along its viewing ray (the depth read at the detected pixel may be the background or an
+occluder, see :func:`ray_measurement_covariances`). With an isotropic ``R = r I3`` every
+``P`` stays ``kron(C, I3)`` with a 2x2 per-axis ``C = [[pp, pv], [pv, vv]]``; :attr:`pp`,
+:attr:`pv`, :attr:`vv` report the per-axis mean of each block (exactly ``C`` in that case).
+The tests check the bank against a plain 6x6 Kalman filter.
 
 Per frame, for each landmark: predict (every filter), then
 
@@ -22,9 +24,12 @@ Per frame, for each landmark: predict (every filter), then
   measurement with ``P0`` and zero velocity. A landmark dropped in this frame waits for its next
   measurement (this frame's measurement was just judged an outlier, or was missing).
 
-The body level uses the filtered positions with ``R_rb = s_k P_lm`` (saliency factor times the
-position block of the filter covariance), an isotropic variance per landmark, see
-:func:`body_measurement_variances`.
+The body level uses the filtered positions with ``R_rb = s_k P_lm + a_k I3`` (saliency factor
+times the position block of the filter covariance, plus the articulation variance of the
+landmark), see :func:`body_measurement_covariances` and :func:`articulation_variances`.
+
+With an anisotropic ``R`` the loss threshold scales with ``trace(R) / (3 r_lm)`` (at least 1), so
+that a filter whose covariance is large only along the viewing ray is not taken for a lost one.
 """
 
 from __future__ import annotations
@@ -42,6 +47,15 @@ BoolArray = NDArray[np.bool_]
 
 NUM_LANDMARKS = 21
 WRIST = 0
+
+_I3 = np.eye(3)
+_I6 = np.eye(6)
+
+# Parent of each landmark in the MediaPipe hand skeleton (the wrist is the root).
+PARENT: tuple[int, ...] = (0, 0, 1, 2, 3, 0, 5, 6, 7, 0, 9, 10, 11, 0, 13, 14, 15, 0, 17, 18, 19)
+# Landmarks rigidly attached to the palm (wrist, thumb CMC, the four finger MCPs); every other
+# landmark sits distal to at least one articulated joint.
+PALM: tuple[int, ...] = (0, 1, 5, 9, 13, 17)
 
 
 @dataclass(frozen=True, eq=False)
@@ -63,89 +77,123 @@ class LandmarkUpdate:
 class LandmarkFilterBank:
     """N constant-velocity KFs, state ``x`` (N, 6) = [position, velocity] per landmark.
 
-    Covariance per row: ``P = kron([[pp, pv], [pv, vv]], I3)`` with ``pp``, ``pv``, ``vv`` (N,)
-    (m^2, m^2/s, m^2/s^2); ``alive`` (N,) marks rows that hold a filter.
+    ``P`` (N, 6, 6) covariance per row; ``alive`` (N,) marks rows that hold a filter.
     """
 
     def __init__(self, n: int, config: TrackerConfig) -> None:
         self.n = n
         self.config = config
         self.x: Array = np.zeros((n, 6))
-        self.pp: Array = np.zeros(n)
-        self.pv: Array = np.zeros(n)
-        self.vv: Array = np.zeros(n)
+        self.P: Array = np.zeros((n, 6, 6))
         self.alive: BoolArray = np.zeros(n, dtype=bool)
-        self._prior = (self.x.copy(), self.pp, self.pv, self.vv, self.alive.copy())
+        self._P0 = np.diag([config.p0_lm_position_m2] * 3 + [config.p0_lm_velocity_m2ps2] * 3)
+        self._Q = np.diag([config.q_lm_position_m2] * 3 + [config.q_lm_velocity_m2ps2] * 3)
+        self._prior = (self.x.copy(), self.P.copy(), self.alive.copy())
+        self._last: tuple[Array, Array] | None = None  # (z, R) of the last update
         self.reset()
 
     def reset(self) -> None:
         """Drop every filter."""
         self.x[:] = 0.0
-        self.pp[:] = self.config.p0_lm_position_m2
-        self.pv[:] = 0.0
-        self.vv[:] = self.config.p0_lm_velocity_m2ps2
+        self.P[:] = self._P0
         self.alive[:] = False
+        self._last = None
+
+    # Per-axis views for isotropic use (exact when P = kron(C, I3)).
+    @property
+    def pp(self) -> Array:
+        """Per-axis position variance (N,): ``trace(P_position) / 3``."""
+        return np.einsum("nii->n", self.P[:, :3, :3]) / 3.0
+
+    @property
+    def pv(self) -> Array:
+        """Per-axis position-velocity covariance (N,): ``trace(P_pv) / 3``."""
+        return np.einsum("nii->n", self.P[:, :3, 3:]) / 3.0
+
+    @property
+    def vv(self) -> Array:
+        """Per-axis velocity variance (N,): ``trace(P_velocity) / 3``."""
+        return np.einsum("nii->n", self.P[:, 3:, 3:]) / 3.0
 
     def predict(self, dt_s: float) -> None:
         """``x = F x``, ``P = F P F' + Q dt / dt_nominal`` for every row (dead rows are inert).
 
-        Per axis, with ``F = [[1, dt], [0, 1]]``: ``pp += 2 dt pv + dt^2 vv + q_p``,
-        ``pv += dt vv``, ``vv += q_v``.
+        With ``F = [[I, dt I], [0, I]]``: ``P_ll += dt (P_lm + P_ml) + dt^2 P_mm``,
+        ``P_lm += dt P_mm``, ``P_ml += dt P_mm``.
         """
         scale = dt_s / self.config.nominal_dt_s
         self.x[:, :3] += dt_s * self.x[:, 3:]
-        self.pp += (2.0 * dt_s) * self.pv + (dt_s * dt_s) * self.vv
-        self.pp += self.config.q_lm_position_m2 * scale
-        self.pv += dt_s * self.vv
-        self.vv += self.config.q_lm_velocity_m2ps2 * scale
+        P = self.P
+        Pmm = P[:, 3:, 3:]
+        P[:, :3, :3] += dt_s * (P[:, :3, 3:] + P[:, 3:, :3]) + (dt_s * dt_s) * Pmm
+        P[:, :3, 3:] += dt_s * Pmm
+        P[:, 3:, :3] += dt_s * Pmm
+        P += self._Q * scale
 
-    def update(self, z: Array, r_m2: float, gate: bool = True,
+    def update(self, z: Array, R: float | Array, gate: bool = True,
                v_start: Array | None = None) -> LandmarkUpdate:
-        """Correct with measurements ``z`` (N, 3), NaN rows = missing, noise ``R = r_m2 I3``.
+        """Correct with measurements ``z`` (N, 3), NaN rows = missing, noise ``R``.
 
+        ``R``: a scalar ``r`` (``R = r I3`` for every row) or per-row covariances (N, 3, 3).
         ``gate=False`` (the ablation) accepts every measurement. ``v_start`` (N, 3): initial
         velocities of filters started in this call (default 0).
         """
         measured: BoolArray = np.all(np.isfinite(z), axis=1)
         z0 = np.where(measured[:, None], z, 0.0)
+        Rn = _as_covariances(R, self.n)
         was_alive = self.alive.copy()
         active = measured & was_alive
-        pp, pv, vv = self.pp, self.pv, self.vv
-        self._prior = (self.x.copy(), pp, pv, vv, was_alive)
+        self._prior = (self.x.copy(), self.P.copy(), was_alive)
+        self._last = (z0, Rn)
 
         y = z0 - self.x[:, :3]  # y = z - H x
-        S = pp + r_m2  # S = H P H' + R (per axis)
-        d = np.sqrt(np.einsum("ni,ni->n", y, y) / S)  # sqrt(y' S^-1 y)
+        S = self.P[:, :3, :3] + Rn  # S = H P H' + R
+        S_inv, _ = inv_sym3(S)
+        d = np.sqrt(np.maximum(np.einsum("ni,nij,nj->n", y, S_inv, y), 0.0))  # sqrt(y' S^-1 y)
         mahalanobis = np.where(active, d, np.nan)
         rejected: BoolArray = np.zeros_like(active)
         if gate:
             rejected = active & (d >= self.config.mahalanobis_lm)
         correct = active & ~rejected
+        self._correct(correct, y, S_inv, Rn)
 
-        kp = np.where(correct, pp / S, 0.0)  # K = P H' S^-1 = [kp, kv] per axis
-        kv = np.where(correct, pv / S, 0.0)
-        self.x[:, :3] += kp[:, None] * y  # x = x + K y
-        self.x[:, 3:] += kv[:, None] * y
-        # Joseph form P = (I - K H) P (I - K H)' + K R K' with I - K H = [[1 - kp, 0], [-kv, 1]].
-        a = 1.0 - kp
-        pv_kv = pv - kv * pp
-        self.vv = vv - kv * pv - kv * pv_kv + kv * kv * r_m2
-        self.pv = a * pv_kv + kp * kv * r_m2
-        self.pp = a * a * pp + kp * kp * r_m2
-
-        dropped = was_alive & (3.0 * self.pp >= self.config.lm_loss_trace_m2)
+        dropped = was_alive & (self._position_trace() >= self._loss_threshold(Rn))
         self.alive &= ~dropped
+        correct &= ~dropped
 
         start = measured & ~was_alive
         if start.any():
             self.x[start, :3] = z0[start]
             self.x[start, 3:] = 0.0 if v_start is None else v_start[start]
-            self.pp[start] = self.config.p0_lm_position_m2
-            self.pv[start] = 0.0
-            self.vv[start] = self.config.p0_lm_velocity_m2ps2
+            self.P[start] = self._P0
             self.alive |= start
         return LandmarkUpdate(fresh=correct | start, rejected=rejected, dropped=dropped,
                               mahalanobis=mahalanobis)
+
+    def _correct(self, rows: BoolArray, y: Array, S_inv: Array, R: Array) -> None:
+        """Kalman correction of ``rows``: ``K = P H' S^-1``, ``x += K y``, Joseph form
+        ``P = (I - K H) P (I - K H)' + K R K'``."""
+        if not rows.any():
+            return
+        P = self.P[rows]
+        K = P[:, :, :3] @ S_inv[rows]  # (n, 6, 3)
+        self.x[rows] += np.einsum("nij,nj->ni", K, y[rows])
+        I_KH = np.broadcast_to(_I6, P.shape).copy()
+        I_KH[:, :, :3] -= K
+        P = I_KH @ P @ np.swapaxes(I_KH, 1, 2) + K @ R[rows] @ np.swapaxes(K, 1, 2)
+        self.P[rows] = 0.5 * (P + np.swapaxes(P, 1, 2))
+
+    def _position_trace(self) -> Array:
+        return np.einsum("nii->n", self.P[:, :3, :3])
+
+    def _loss_threshold(self, R: Array) -> Array:
+        """Loss threshold per row (N,): ``lm_loss_trace`` scaled by ``trace(R) / (3 r_lm)``, the
+        size of the row's measurement noise relative to the isotropic ``r_lm I3`` the threshold
+        was set for (1 for isotropic noise), so a filter that is merely anisotropic (a large
+        variance along the viewing ray) is not mistaken for a lost one."""
+        ratio = np.einsum("nii->n", R) / (3.0 * self.config.r_lm_m2)
+        out: Array = self.config.lm_loss_trace_m2 * np.maximum(ratio, 1.0)
+        return out
 
     def reject(self, rows: BoolArray) -> BoolArray:
         """Undo this frame's correction of ``rows``, judged outliers by a higher level.
@@ -155,12 +203,12 @@ class LandmarkFilterBank:
         this frame's (outlier) measurement had just started is removed. Returns the dropped rows.
         Call after :meth:`update`, before the next :meth:`predict`.
         """
-        x_prior, pp, pv, vv, was_alive = self._prior
+        x_prior, P_prior, was_alive = self._prior
         self.x[rows] = x_prior[rows]
-        self.pp = np.where(rows, pp, self.pp)
-        self.pv = np.where(rows, pv, self.pv)
-        self.vv = np.where(rows, vv, self.vv)
-        lost = 3.0 * self.pp >= self.config.lm_loss_trace_m2
+        self.P[rows] = P_prior[rows]
+        threshold = (self.config.lm_loss_trace_m2 if self._last is None
+                     else self._loss_threshold(self._last[1]))
+        lost = self._position_trace() >= threshold
         dropped = rows & self.alive & (lost | ~was_alive)
         self.alive &= ~dropped
         return dropped
@@ -169,14 +217,49 @@ class LandmarkFilterBank:
         """Filtered positions (N, 3); NaN rows where no filter is alive."""
         return np.where(self.alive[:, None], self.x[:, :3], np.nan)
 
+    def position_covariances(self) -> Array:
+        """Position covariances ``P_lm`` (N, 3, 3) (meaningful where alive)."""
+        return self.P[:, :3, :3].copy()
+
     def position_variances(self) -> Array:
-        """Per-axis position variance ``pp`` (N,): ``P_lm = pp I3`` (meaningful where alive)."""
-        return self.pp.copy()
+        """Per-axis position variance (N,), ``trace(P_lm) / 3`` (meaningful where alive)."""
+        return self.pp
 
     def covariance(self, row: int) -> Array:
-        """The full 6x6 covariance of one row, ``kron([[pp, pv], [pv, vv]], I3)``."""
-        C = np.array([[self.pp[row], self.pv[row]], [self.pv[row], self.vv[row]]])
-        return np.kron(C, np.eye(3))
+        """The full 6x6 covariance of one row."""
+        return self.P[row].copy()
+
+
+def _as_covariances(R: float | Array, n: int) -> Array:
+    """``R`` as per-row covariances (n, 3, 3): a scalar is ``R I3`` for every row."""
+    R_arr = np.asarray(R, dtype=float)
+    if R_arr.ndim == 0:
+        return np.broadcast_to(float(R_arr) * _I3, (n, 3, 3))
+    if R_arr.shape != (n, 3, 3):
+        raise ValueError(f"R must be a scalar or ({n}, 3, 3), got shape {R_arr.shape}")
+    return R_arr
+
+
+def ray_measurement_covariances(points: Array, r_m2: float, depth_factor: float) -> Array:
+    """Measurement covariances (N, 3, 3) of back-projected landmarks in the camera frame.
+
+    ``R_i = r (I - u_i u_i') + depth_factor r u_i u_i'`` with ``u_i`` the unit viewing ray of
+    ``points`` (N, 3) (camera at the origin; rows with a NaN point get ``r I3``).
+
+    Why: a landmark is a 2-D detection back-projected with the depth read at that pixel, so its
+    error has two independent parts. Across the ray it is the 2-D error times depth over focal
+    length; along the ray it is the depth error, which for thin fingers is heavy-tailed: a
+    detection a few pixels off the digit reads the background behind it or the occluder in front,
+    centimetres away, while the lateral error stays at the 2-D level. ``depth_factor = 1`` is
+    the paper's isotropic ``R_lm = r I3``.
+    """
+    norm = np.linalg.norm(points, axis=1)
+    ok = np.isfinite(norm) & (norm > 0.0)
+    u = np.zeros_like(points)
+    u[ok] = points[ok] / norm[ok, None]
+    R = np.broadcast_to(r_m2 * _I3, (points.shape[0], 3, 3)).copy()
+    R += ((depth_factor - 1.0) * r_m2) * (u[:, :, None] * u[:, None, :])
+    return R
 
 
 def missing_mask(points: Array, visibility: Array, visibility_threshold: float) -> BoolArray:
@@ -193,10 +276,10 @@ def body_landmark_mask(config: TrackerConfig) -> BoolArray:
 
 
 def body_measurement_variances(pp: Array, config: TrackerConfig) -> Array:
-    """Per-axis variance ``r_i`` (21,) of ``R_rb,i = r_i I3`` for one hand's filtered landmarks.
+    """Per-axis variance ``r_i`` (21,) of an isotropic ``R_rb,i = r_i I3`` (Table-I units).
 
     With the uncertainty models: ``R_rb,k = s_k P_lm,k`` (saliency factor times the filter's
-    position covariance ``pp I3``; the wrist row carries ``P_lm`` unscaled but is excluded by
+    per-axis position variance ``pp``; the wrist row carries ``P_lm`` unscaled but is excluded by
     :func:`body_landmark_mask`). Without (ablation): the detector noise ``r_lm`` for every
     landmark (uniform).
     """
@@ -204,6 +287,56 @@ def body_measurement_variances(pp: Array, config: TrackerConfig) -> Array:
         return np.full(NUM_LANDMARKS, config.r_lm_m2)
     factors: Array = _saliency_array(config) * pp
     return factors
+
+
+def body_measurement_covariances(P_lm: Array, config: TrackerConfig,
+                                 articulation: Array | None = None) -> Array:
+    """``R_rb`` (21, 3, 3) of one hand's filtered landmarks (Table-I units).
+
+    With the uncertainty models: ``R_rb,k = s_k P_lm,k + a_k I3``: the paper's saliency factor
+    times the filter's position covariance, plus the articulation variance ``a_k`` (21,)
+    (:func:`articulation_variances`, converted to Table-I units by the caller), the error of
+    the rigid-hand assumption at that landmark. Without (ablation): ``r_lm I3`` for every
+    landmark (uniform, isotropic).
+    """
+    if not config.use_uncertainty_models:
+        return np.broadcast_to(config.r_lm_m2 * _I3, (NUM_LANDMARKS, 3, 3)).copy()
+    R = _saliency_array(config)[:, None, None] * P_lm
+    if articulation is not None:
+        R = R + articulation[:, None, None] * _I3
+    out: Array = R
+    return out
+
+
+def articulation_variances(points_body: Array, std_rad: float) -> Array:
+    """Variance (21,) [m^2] of each landmark's position in the hand body from finger flexion.
+
+    The body model holds the hand rigid, but only the palm is (wrist, thumb CMC and finger MCP
+    landmarks, :data:`PALM`): each joint distal to the palm flexes a little while the hand holds
+    an object (grip adjustments, tightening with effort). With an independent flexion of standard
+    deviation ``std_rad`` at every articulated joint on the chain from the palm to landmark ``j``,
+    ``j`` moves by ``theta |p_j - p_joint|`` per joint, so (isotropically, to first order)
+    ``a_j = std_rad^2 sum_joints |p_j - p_joint|^2 / 3`` per axis, with the joint positions taken
+    from the body model ``points_body`` (21, 3) (NaN rows: the chain is followed through the
+    skeleton's nominal parent; a missing joint contributes nothing). Palm landmarks get 0.
+    """
+    var = np.zeros(NUM_LANDMARKS)
+    if std_rad <= 0.0:
+        return var
+    for j in range(NUM_LANDMARKS):
+        if j in PALM or not np.isfinite(points_body[j]).all():
+            continue
+        a = PARENT[j]
+        total = 0.0
+        while True:
+            if np.isfinite(points_body[a]).all():
+                d = points_body[j] - points_body[a]
+                total += float(d @ d)
+            if a in PALM:
+                break
+            a = PARENT[a]
+        var[j] = std_rad * std_rad * total / 3.0
+    return var
 
 
 @lru_cache(maxsize=8)
@@ -237,11 +370,16 @@ def inv_sym3(S: Array) -> tuple[Array, Array]:
 
 __all__ = [
     "NUM_LANDMARKS",
+    "PALM",
+    "PARENT",
     "WRIST",
     "LandmarkFilterBank",
     "LandmarkUpdate",
+    "articulation_variances",
     "body_landmark_mask",
+    "body_measurement_covariances",
     "body_measurement_variances",
     "inv_sym3",
     "missing_mask",
+    "ray_measurement_covariances",
 ]

@@ -5,15 +5,24 @@ Per accepted frame (:meth:`HandTracker.step`):
 1. Reject bad frames (duplicate or out-of-order stamp, bad camera pose, a change between
    camera and world tracking) and bad hands (shape, handedness, non-finite visibility/score),
    counting each in ``rejected[reason]``; nothing raises on bad data.
-2. Transform the landmarks and the detector noise ``R_lm`` into the tracking frame ("world" when
-   ``T_world_camera`` is given, else "camera") and run the landmark KFs of both hand slots
-   (``landmarks.py``).
+2. Transform the landmarks and the detector noise ``R_lm`` (anisotropic about each viewing ray,
+   ``depth_variance_factor``) into the tracking frame ("world" when ``T_world_camera`` is given,
+   else "camera") and run the landmark KFs of both hand slots (``landmarks.py``).
 3. Before initialisation: collect a window of frames of the tracked hand and try the weighted
-   RANSAC initialisation (``ransac.py``); the output says ``initialized=False``.
+   RANSAC initialisation (``ransac.py``); the output says ``initialized=False``. The window also
+   calibrates the new body (:meth:`HandTracker._seed_from_window`): its first published
+   covariance, the kinematic level's reference pose, is then already honest.
 4. After: predict the motion models, choose, gate and correct the body EKF (``body.py``).
    The body level feeds back to the landmark level, as in OMIP: a landmark it rejects has its
    correction undone (as if the landmark gate had rejected it), and a landmark filter that
-   (re)starts on the tracked hand starts with the body's velocity at that point.
+   (re)starts on the tracked hand starts with the body's velocity at that point. The body model
+   is then refined and completed from the accepted landmarks (:meth:`HandTracker.
+   _refine_template`).
+
+All filter covariances are physical (m^2, rad^2): Table I's values times ``variance_unit_m2``
+(``TrackerConfig.internal``). The published covariance is the filter's, scaled by the smoothed
+a-posteriori variance factor of the body fit and by the frame-to-frame correlation factor of its
+residuals (:attr:`HandTracker.variance_factor`, :attr:`HandTracker.correlation_factor`).
 
 ``step`` returns None for rejected frames and for frames that carry no correction of an
 initialised body (tracked hand absent, or fewer than ``min_inliers`` usable landmarks; counted in
@@ -36,6 +45,8 @@ from services.tracker.body import (
     MOTION_MODELS,
     HandBodyEkf,
     body_noise_matrices,
+    information_sums,
+    mahalanobis_sq,
     select_and_gate,
 )
 from services.tracker.config import TrackerConfig
@@ -43,11 +54,14 @@ from services.tracker.landmarks import (
     NUM_LANDMARKS,
     WRIST,
     LandmarkFilterBank,
+    articulation_variances,
     body_landmark_mask,
-    body_measurement_variances,
+    body_measurement_covariances,
+    inv_sym3,
     missing_mask,
+    ray_measurement_covariances,
 )
-from services.tracker.ransac import initial_body, rigid_ransac
+from services.tracker.ransac import initial_body, rigid_ransac, weighted_kabsch
 
 Array = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
@@ -60,6 +74,7 @@ STATUS_OUTLIER = 2  # rejected this step (landmark gate, body gates or RANSAC)
 STATUS_EXCLUDED = 3  # the wrist, excluded by the saliency model
 
 _ROTATION_TOL = 1e-6
+_CHI2_3_99 = 11.345  # 99 % point of the chi-square distribution with 3 degrees of freedom
 _MAX_COORD_M = 1e3  # coordinates beyond 1 km are treated as missing (keeps the numerics finite)
 
 
@@ -88,9 +103,9 @@ class HandBodyEstimate:
     - ``motion_model``: the prediction that won this step.
     - ``landmark_points``: (21, 3) float32 filtered positions in ``frame_id``, NaN where no filter.
     - ``landmark_variance``: (21,) float32 ``trace(R_rb)`` (m^2), the body-level measurement
-      variance (saliency factor times the trace of the filter's position covariance; the
-      wrist's is ``trace(P_lm)``; ``3 r_lm`` for every landmark in the ablation), NaN where no
-      filter.
+      variance (saliency factor times the trace of the filter's position covariance, plus the
+      articulation variance; the wrist's is ``trace(P_lm)``; ``3 r_lm`` for every landmark in
+      the ablation), NaN where no filter.
     - ``landmark_status``: (21,) uint8: 0 unused, 1 used, 2 outlier this step, 3 excluded (wrist).
     """
 
@@ -110,7 +125,7 @@ class HandBodyEstimate:
 class _WindowFrame:
     stamp_ns: int
     positions: Array  # (21, 3)
-    variances: Array  # (21,) per-axis R_rb
+    variances: Array  # (21,) per-axis R_rb (trace / 3)
     usable: BoolArray  # (21,)
 
 
@@ -130,6 +145,18 @@ def _valid_pose(T: object) -> Array | None:
     return M
 
 
+def robust_centre(points: Array) -> Array:
+    """A robust, rotation-equivariant centre (3,) of observations ``points`` (k, 3): the mean of
+    the half closest to the medoid (the observation with the least summed distance to the
+    others). Breakdown point 50 %, unlike the mean; unlike a coordinate-wise median it does not
+    depend on the orientation of the frame, so the body model does not either."""
+    d = np.linalg.norm(points[:, None, :] - points[None, :, :], axis=2)
+    medoid = points[int(np.argmin(d.sum(axis=1)))]
+    near = np.argsort(np.linalg.norm(points - medoid, axis=1))[:max(1, (len(points) + 1) // 2)]
+    out: Array = points[near].mean(axis=0)
+    return out
+
+
 class HandTracker:
     """Landmark KFs + weighted RANSAC initialisation + hand-body EKF for one tracked hand.
 
@@ -139,6 +166,8 @@ class HandTracker:
 
     def __init__(self, config: TrackerConfig) -> None:
         self.config = config
+        self._cfg = config.internal()  # Table I in physical units (TrackerConfig.internal)
+        config = self._cfg
         self.rejected: dict[str, int] = {}
         self.skipped: dict[str, int] = {}
         self.reinitializations = 0
@@ -158,14 +187,22 @@ class HandTracker:
         """Forget everything (filters, body, stamps, tracking frame); re-seed the rng."""
         self._bank.reset()
         self._window.clear()
-        self._rng = np.random.default_rng(self.config.seed)
+        self._rng = np.random.default_rng(self._cfg.seed)
         self._last_stamp_ns: int | None = None
         self._frame_id: str | None = None
         self._slot: int | None = None
         self._ekf: HandBodyEkf | None = None
         self._points_body: Array | None = None
+        self._template_count = np.zeros(NUM_LANDMARKS)
+        self._candidates = np.full((NUM_LANDMARKS, max(1, self._cfg.template_candidate_frames), 3),
+                                   np.nan)
+        self._candidate_count = np.zeros(NUM_LANDMARKS, dtype=np.intp)
+        self._articulation = np.zeros(NUM_LANDMARKS)
         self._body_stamp_ns = 0
         self._variance_factor: float | None = None
+        self._last_residuals: Array | None = None
+        self._residual_cross: float | None = None
+        self._residual_power = 0.0
 
     @property
     def initialized(self) -> bool:
@@ -212,15 +249,15 @@ class HandTracker:
         observed = self._parse_hands(hands)
         slot = self._tracked_slot(observed)
         z = np.full((len(HANDS) * NUM_LANDMARKS, 3), np.nan)
+        z_camera = np.full_like(z, np.nan)
         for s, (_, points) in observed.items():
-            z[s * NUM_LANDMARKS:(s + 1) * NUM_LANDMARKS] = (
-                points if T_wc is None else points @ T_wc[:3, :3].T + T_wc[:3, 3])
-        # The detector noise R_lm = r I3 is isotropic, so R_wc R_lm R_wc' = R_lm: the covariance
-        # transform into the world frame is exact and leaves the scalar unchanged.
+            z_camera[s * NUM_LANDMARKS:(s + 1) * NUM_LANDMARKS] = points
+        z = z_camera if T_wc is None else z_camera @ T_wc[:3, :3].T + T_wc[:3, 3]
+        R_lm = self._measurement_noise(z_camera, T_wc)
         if self._last_stamp_ns is not None:
             self._bank.predict((stamp_ns - self._last_stamp_ns) * 1e-9)
         self._last_stamp_ns = stamp_ns
-        update = self._bank.update(z, self.config.r_lm_m2, gate=self.config.use_uncertainty_models,
+        update = self._bank.update(z, R_lm, gate=self._cfg.use_uncertainty_models,
                                    v_start=self._start_velocities(slot, z))
 
         if slot is None or slot not in observed:
@@ -228,7 +265,7 @@ class HandTracker:
                 self._maybe_drop_body(stamp_ns)
             else:
                 self._window.clear()
-                if self.config.hand_selection == "best":
+                if self._cfg.hand_selection == "best":
                     self._slot = None
             self._skip("no_hand")
             return None
@@ -236,7 +273,7 @@ class HandTracker:
         rows = slice(slot * NUM_LANDMARKS, (slot + 1) * NUM_LANDMARKS)
         status = np.zeros(NUM_LANDMARKS, dtype=np.uint8)
         status[update.rejected[rows]] = STATUS_OUTLIER
-        if self.config.use_uncertainty_models:
+        if self._cfg.use_uncertainty_models:
             status[WRIST] = STATUS_EXCLUDED
         usable = update.fresh[rows] & self._body_mask
         model: str | None
@@ -247,8 +284,9 @@ class HandTracker:
         if model is None:
             return None
         # Outputs after the body step: a body-level rejection undoes the landmark correction.
-        positions, r_rb = self._body_inputs(rows)
-        variance = np.where(self._bank.alive[rows], 3.0 * r_rb, np.nan)
+        positions, R_rb = self._body_inputs(rows)
+        trace = np.einsum("nii->n", R_rb)
+        variance = np.where(self._bank.alive[rows], trace, np.nan)
         return self._estimate(stamp_ns, positions, variance, status, model)
 
     # --- internals --------------------------------------------------------------------------
@@ -288,25 +326,44 @@ class HandTracker:
                 self._reject("duplicate_handedness")
                 if score <= out[slot][0]:
                     continue
-            missing = missing_mask(points, visibility, self.config.visibility_threshold)
+            missing = missing_mask(points, visibility, self._cfg.visibility_threshold)
             missing |= ~(np.abs(points) < _MAX_COORD_M).all(axis=1)  # NaN compares False
             out[slot] = (score, np.where(missing[:, None], np.nan, points))
         return out
 
     def _tracked_slot(self, observed: dict[int, tuple[float, Array]]) -> int | None:
         """The slot of the tracked hand; "best" locks the best-scored hand until re-init."""
-        selection = self.config.hand_selection
+        selection = self._cfg.hand_selection
         if selection != "best":
             return HANDS.index(selection)
         if self._slot is None and observed:
             self._slot = max(observed, key=lambda s: observed[s][0])
         return self._slot
 
+    def _measurement_noise(self, z_camera: Array, T_wc: Array | None) -> Array:
+        """``R_lm`` (N, 3, 3) in the tracking frame: isotropic ``r_lm I3`` in the ablation or with
+        ``depth_variance_factor = 1``, else anisotropic about each landmark's viewing ray
+        (:func:`~services.tracker.landmarks.ray_measurement_covariances`)."""
+        cfg = self._cfg
+        factor = cfg.depth_variance_factor if cfg.use_uncertainty_models else 1.0
+        if factor == 1.0:
+            # Isotropic: R_wc R_lm R_wc' = R_lm, the same in the camera and world frames.
+            return np.broadcast_to(cfg.r_lm_m2 * np.eye(3), (z_camera.shape[0], 3, 3))
+        norm = np.linalg.norm(z_camera, axis=1)
+        ok = np.isfinite(norm) & (norm > 0.0)
+        rays = np.zeros_like(z_camera)
+        rays[ok] = z_camera[ok] / norm[ok, None]
+        if T_wc is not None:
+            rays = rays @ T_wc[:3, :3].T  # R = r (I - u u') + f r u u' rotates with its ray
+        return ray_measurement_covariances(rays, cfg.r_lm_m2, factor)
+
     def _maybe_drop_body(self, stamp_ns: int) -> None:
         """Drop the body once it has gone ``reinit_after_s`` without a correction."""
-        if (stamp_ns - self._body_stamp_ns) * 1e-9 >= self.config.reinit_after_s:
+        if (stamp_ns - self._body_stamp_ns) * 1e-9 >= self._cfg.reinit_after_s:
             self._ekf = None
             self._points_body = None
+            self._articulation = np.zeros(NUM_LANDMARKS)
+            self._last_residuals = None
             self._window.clear()
             self.reinitializations += 1
 
@@ -336,18 +393,20 @@ class HandTracker:
         return v
 
     def _body_inputs(self, rows: slice) -> tuple[Array, Array]:
-        """Filtered positions (21, 3) and per-axis ``R_rb`` variances (21,) of the tracked hand."""
+        """Filtered positions (21, 3) and ``R_rb`` (21, 3, 3) of the tracked hand."""
         bank = self._bank
         positions = np.where(bank.alive[rows, None], bank.x[rows, :3], np.nan)
-        return positions, body_measurement_variances(bank.pp[rows], self.config)
+        return positions, body_measurement_covariances(bank.P[rows, :3, :3], self._cfg,
+                                                       self._articulation)
 
     def _initialise(self, stamp_ns: int, rows: slice, usable: BoolArray,
                     status: NDArray[np.uint8]) -> str:
         """Collect the window; try the weighted RANSAC once it is full. Returns the model name."""
-        positions, r_rb = self._body_inputs(rows)
+        positions, R_rb = self._body_inputs(rows)
+        r_rb = np.einsum("nii->n", R_rb) / 3.0
         self._window.append(_WindowFrame(stamp_ns, positions, r_rb, usable.copy()))
         status[usable] = STATUS_USED
-        cfg = self.config
+        cfg = self._cfg
         if len(self._window) < cfg.init_window_frames:
             return MOTION_MODELS[0]
         first, last = self._window[0], self._window[-1]
@@ -372,41 +431,155 @@ class HandTracker:
         self._ekf = HandBodyEkf(body.T_frame_body, body.twist, self._P0_rb, self._Q_rb,
                                 cfg.nominal_dt_s)
         self._points_body = body.points_body
+        self._template_count = np.where(np.isfinite(body.points_body).all(axis=1),
+                                        float(len(frames)), 0.0)
+        self._candidates[:] = np.nan
+        self._candidate_count[:] = 0
+        if cfg.use_uncertainty_models:
+            self._articulation = articulation_variances(
+                body.points_body, cfg.articulation_std_rad)
+        self._seed_from_window(frames)
         self._body_stamp_ns = stamp_ns
         self._window.clear()
         status[usable & ~inliers] = STATUS_OUTLIER
         return MOTION_MODELS[0]
 
-    def _update_variance_factor(self, positions: Array, points_body: Array, r_rb: Array) -> None:
-        """Track the a-posteriori variance of unit weight of the body fit.
+    def _seed_from_window(self, frames: list[_WindowFrame]) -> None:
+        """Calibrate the new body from its initialisation window, so that its very first
+        published covariance (the kinematic level's reference pose) is honest.
 
-        Table I's covariances are right only up to one global scale (about (20 cm)^2 against
-        mm-level landmark noise). ``sum(|r_i|^2 / R_i) / (3n - 6)`` over the posterior residuals
-        ``r_i = z_i - T p_i`` estimates that scale; it is smoothed over frames and applied to the
-        published covariance, so downstream consumers get metres and radians. Kalman gains do
-        not change under a global scale, so the estimates themselves are unaffected.
+        The body model is fitted (weighted Kabsch) to every window frame; the residuals seed the
+        variance factor and the residual correlation (:meth:`_update_variance_factor`), and the
+        fit's information at the last frame, ``A = sum H_i' R_i^-1 H_i``, adds its covariance
+        ``A^-1`` to the pose block of ``P0``: the initial pose is that fit, and Table I's ``P0``
+        alone (a few mm and a degree) would claim more than a single frame of landmarks knows.
+        """
+        ekf = self._ekf
+        pb = self._points_body
+        assert ekf is not None and pb is not None
+        model = np.isfinite(pb).all(axis=1)
+        template = pb @ ekf.T[:3, :3].T + ekf.T[:3, 3]
+        a = self._cfg.variance_factor_smoothing
+        self._variance_factor = None
+        self._residual_cross = None
+        self._last_residuals = None
+        samples = []
+        for f in frames:
+            common = model & f.usable
+            if common.sum() < 3:
+                self._last_residuals = None
+                continue
+            w = 1.0 / f.variances[common]
+            R, t = weighted_kabsch(template[common], f.positions[common], w)
+            fitted = np.full_like(template, np.nan)
+            fitted[common] = template[common] @ R.T + t
+            residual = np.where(common[:, None], f.positions - fitted, np.nan)
+            W = np.where(common, 1.0 / f.variances, 0.0)
+            n = int(common.sum())
+            if 3 * n > 6:
+                samples.append(float(np.nansum(W[:, None] * residual * residual)) / (3 * n - 6))
+            last = self._last_residuals
+            if last is not None:
+                both = common & np.isfinite(last).all(axis=1)
+                if both.any():
+                    cross = float(np.sum(W[both, None] * residual[both] * last[both]))
+                    power = 0.5 * float(np.sum(W[both, None] * (residual[both] ** 2
+                                                                + last[both] ** 2)))
+                    if self._residual_cross is None:
+                        self._residual_cross, self._residual_power = cross, power
+                    else:
+                        self._residual_cross += a * (cross - self._residual_cross)
+                        self._residual_power += a * (power - self._residual_power)
+            self._last_residuals = residual
+        if samples:
+            self._variance_factor = float(np.mean(samples))
+        final = frames[-1]
+        use = model & final.usable
+        if use.sum() >= 3:
+            q = template[use][None]
+            A, _, _ = information_sums(q, np.zeros_like(q), 1.0 / final.variances[use])
+            try:
+                P_fit = np.linalg.inv(A[0])
+            except np.linalg.LinAlgError:
+                return
+            if np.isfinite(P_fit).all():
+                ekf.P[:6, :6] += 0.5 * (P_fit + P_fit.T)
+
+    def _update_variance_factor(self, used: NDArray[np.intp], positions: Array,
+                                points_body: Array, R_rb: Array) -> None:
+        """Track the a-posteriori variance of unit weight of the body fit and the frame-to-frame
+        correlation of its residuals.
+
+        ``sum(r_i' R_i^-1 r_i) / (3n - 6)`` over the posterior residuals ``r_i = z_i - T p_i`` of
+        the ``used`` landmarks (rows of the (21, ...) arrays) estimates how far the filter's
+        covariances are off from the data (1 when the noise model is right); it is smoothed over
+        frames. The lag-one correlation ``rho = sum r_i(t)' W_i r_i(t-1) / sum r_i' W_i r_i`` of
+        the residuals of landmarks used in both frames is smoothed the same way: detector errors
+        and grip adjustments persist over many frames (the landmark filters add some more), so
+        successive poses are not independent measurements (see :attr:`correlation_factor`).
         """
         ekf = self._ekf
         assert ekf is not None
-        n = positions.shape[0]
+        n = used.size
         if n * 3 <= 6:
+            self._last_residuals = None
             return
-        residual = positions - (points_body @ ekf.T[:3, :3].T + ekf.T[:3, 3])
-        sample = float(np.sum(residual * residual / r_rb[:, None])) / (3 * n - 6)
+        residual = np.full((NUM_LANDMARKS, 3), np.nan)
+        residual[used] = positions[used] - (points_body[used] @ ekf.T[:3, :3].T + ekf.T[:3, 3])
+        W, _ = inv_sym3(R_rb[used])
+        d2 = np.einsum("ni,nij,nj->n", residual[used], W, residual[used])
+        sample = float(np.sum(d2)) / (3 * n - 6)
         if not math.isfinite(sample) or sample <= 0.0:
             return
+        a = self._cfg.variance_factor_smoothing
         if self._variance_factor is None:
             self._variance_factor = sample
         else:
-            a = self.config.variance_factor_smoothing
             self._variance_factor += a * (sample - self._variance_factor)
+        last = self._last_residuals
+        if last is not None:
+            both = np.isfinite(last[used]).all(axis=1)
+            if both.any():
+                prev = last[used][both]
+                now = residual[used][both]
+                Wb = W[both]
+                cross = float(np.einsum("ni,nij,nj->", now, Wb, prev))
+                power = 0.5 * float(np.einsum("ni,nij,nj->", now, Wb, now)
+                                    + np.einsum("ni,nij,nj->", prev, Wb, prev))
+                if self._residual_cross is None:
+                    self._residual_cross, self._residual_power = cross, power
+                else:
+                    self._residual_cross += a * (cross - self._residual_cross)
+                    self._residual_power += a * (power - self._residual_power)
+        self._last_residuals = residual
 
     @property
     def variance_factor(self) -> float:
-        """Scale applied to the published covariance (1 until measured or when disabled)."""
-        if not self.config.calibrate_covariance or self._variance_factor is None:
+        """Scale applied to the filter covariance for publication (1 when disabled or before any
+        measurement): the a-posteriori variance factor times :attr:`correlation_factor`."""
+        if not self._cfg.calibrate_covariance or self._variance_factor is None:
             return 1.0
-        return self._variance_factor
+        return self._variance_factor * self.correlation_factor
+
+    @property
+    def correlation_factor(self) -> float:
+        """``(1 + rho) / (1 - rho)`` for the smoothed lag-one residual correlation ``rho``
+        (clipped to [0, 1) and the factor to ``max_correlation_factor``); 1 when disabled.
+
+        For errors with an AR(1) correlation ``rho`` between frames, ``(1 + rho) / (1 - rho)``
+        is the integrated autocorrelation time in frames: averaging N such poses is worth
+        ``N (1 - rho) / (1 + rho)`` independent ones. A consumer that treats successive poses as
+        independent (the kinematic filters do) gets the right posterior uncertainty from
+        covariances inflated by this factor.
+        """
+        cfg = self._cfg
+        if (not cfg.calibrate_covariance or cfg.max_correlation_factor <= 1.0
+                or self._residual_cross is None or not self._residual_power > 0.0):
+            return 1.0
+        rho = min(max(self._residual_cross / self._residual_power, 0.0), 1.0)
+        if rho >= 1.0:
+            return cfg.max_correlation_factor
+        return min((1.0 + rho) / (1.0 - rho), cfg.max_correlation_factor)
 
     def _kinematic(self, prior: KinematicPrior | None, stamp_ns: int
                    ) -> tuple[Array, Array] | None:
@@ -431,7 +604,59 @@ class HandTracker:
         if np.linalg.eigvalsh(Sigma)[0] < -1e-9 * scale:
             self._reject("bad_kinematic_prior")
             return None
-        return T, Sigma
+        # The prior is in the published units (metres, radians); the filter's are Table I's.
+        return T, Sigma / self.variance_factor
+
+    def _refine_template(self, positions: Array, R_rb: Array, accepted: NDArray[np.intp],
+                         newcomers: BoolArray) -> None:
+        """Refine the body model with this frame's landmarks (after the body correction).
+
+        The body-frame coordinates ``p_i`` fixed at initialisation come from a few frames of noisy
+        landmarks and from the RANSAC inliers only. Each frame, every landmark the body accepted
+        whose posterior residual is also well inside its modelled noise (``r' R_rb^-1 r`` below
+        the chi-square 99 % point for 3 DOF: the model is a long-term average and takes no
+        borderline outlier that slipped through the wider Table-I gates) adds its
+        observation ``T^-1 z_i`` to a running mean of up to
+        ``template_memory_frames`` frames; a measured landmark outside the model collects
+        observations, and joins the model at their :func:`robust_centre` (robust to the depth
+        outliers among them) after ``template_candidate_frames``. The refined model is
+        then aligned to the previous one (weighted Kabsch over the previous model's landmarks),
+        so only its shape changes: the body frame, and with it the published poses, does not
+        drift with the refinement.
+        """
+        cfg = self._cfg
+        ekf = self._ekf
+        if cfg.template_memory_frames <= 0 or ekf is None or self._points_body is None:
+            return
+        old = self._points_body
+        R_T, t_T = ekf.T[:3, :3], ekf.T[:3, 3]
+        obs = (positions - t_T) @ R_T  # T^-1 z, row-wise
+        new = old.copy()
+        if accepted.size and cfg.use_uncertainty_models:  # an outlier gate: off in the ablation
+            residual = (obs[accepted] - old[accepted]) @ R_T.T  # z - T p, frame coordinates
+            d2, _ = mahalanobis_sq(R_rb[accepted], residual)
+            accepted = accepted[d2 < _CHI2_3_99]
+        if accepted.size:
+            n = np.minimum(self._template_count[accepted] + 1.0, cfg.template_memory_frames)
+            new[accepted] += (obs[accepted] - old[accepted]) / n[:, None]
+            self._template_count[accepted] = n
+        joined = False
+        k = cfg.template_candidate_frames
+        if k > 0:
+            for j in np.flatnonzero(newcomers & np.isfinite(obs).all(axis=1)):
+                self._candidates[j, self._candidate_count[j] % k] = obs[j]
+                self._candidate_count[j] += 1
+                if self._candidate_count[j] >= k:
+                    new[j] = robust_centre(self._candidates[j])
+                    self._template_count[j] = float(k)
+                    joined = True
+        model = np.isfinite(old).all(axis=1)
+        if model.sum() >= 3:
+            R, t = weighted_kabsch(new[model], old[model], np.ones(int(model.sum())))
+            new = new @ R.T + t
+        self._points_body = new
+        if joined and cfg.use_uncertainty_models:
+            self._articulation = articulation_variances(new, cfg.articulation_std_rad)
 
     def _track(self, stamp_ns: int, rows: slice, usable: BoolArray, status: NDArray[np.uint8],
                prior: KinematicPrior | None) -> str | None:
@@ -442,27 +667,28 @@ class HandTracker:
         """
         ekf = self._ekf
         assert ekf is not None and self._points_body is not None
-        cfg = self.config
-        positions, r_rb = self._body_inputs(rows)
+        cfg = self._cfg
+        positions, R_rb = self._body_inputs(rows)
         candidates = usable & np.isfinite(self._points_body).all(axis=1)
         idx = np.flatnonzero(candidates)
         if idx.size >= cfg.min_inliers:
             dt = (stamp_ns - self._body_stamp_ns) * 1e-9
             predictions = ekf.predict(dt, self._kinematic(prior, stamp_ns))
             step = select_and_gate(predictions, positions[idx], self._points_body[idx],
-                                   r_rb[idx], cfg.mahalanobis_rb, gate=cfg.use_uncertainty_models)
+                                   R_rb[idx], cfg.mahalanobis_rb, gate=cfg.use_uncertainty_models)
             rejected = idx[step.rejected]
             status[rejected] = STATUS_OUTLIER
             if rejected.size:
                 mask = np.zeros(self._bank.n, dtype=bool)
-                mask[rows][rejected] = True
+                mask[rows.start + rejected] = True
                 self._bank.reject(mask)
                 usable[rejected] = False
             used = idx[step.accepted]
             if used.size >= cfg.min_inliers:
                 chosen = predictions[step.model]
                 ekf.update_chosen(predictions, step)
-                self._update_variance_factor(positions[used], self._points_body[used], r_rb[used])
+                self._update_variance_factor(used, positions, self._points_body, R_rb)
+                self._refine_template(positions, R_rb, used, usable & ~candidates)
                 self._body_stamp_ns = stamp_ns
                 status[used] = STATUS_USED
                 return chosen.model
@@ -482,4 +708,5 @@ __all__ = [
     "HandBodyEstimate",
     "HandObservation",
     "HandTracker",
+    "robust_centre",
 ]

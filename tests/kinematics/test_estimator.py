@@ -373,11 +373,14 @@ def test_long_tracking_gap_keeps_the_joint_value() -> None:
 def test_config_defaults_and_checks() -> None:
     cfg = KinematicsConfig()
     assert (cfg.prismatic_initial_variance, cfg.revolute_initial_variance) == (3.0, 1.0)
+    # Table I except the axis and point noise, 100x lower (config docstring: the joint is fixed).
     assert (cfg.prismatic_axis_noise_rad2_per_s3, cfg.prismatic_q_noise_m2_per_s3,
-            cfg.prismatic_qdot_noise_m2_per_s3) == (2.55, 0.7, 75.0)
+            cfg.prismatic_qdot_noise_m2_per_s3) == (0.0255, 0.7, 75.0)
     assert (cfg.revolute_axis_noise_rad2_per_s3, cfg.revolute_point_noise_m2_per_s3,
             cfg.revolute_q_noise_rad2_per_s3, cfg.revolute_qdot_noise_rad2_per_s3) == (
-        2.55, 0.3, 5.1, 75.0)
+        0.0255, 0.0003, 5.1, 75.0)
+    assert (cfg.revolute_inflation_scale, cfg.prismatic_inflation_length_m) == (3.0, 0.03)
+    assert (cfg.revolute_min_rotation_rad, cfg.min_motion_sigmas) == (0.3, 4.0)
     assert (cfg.likelihood_sample_num, cfg.likelihood_sigma_translation_m,
             cfg.likelihood_sigma_rotation_rad) == (100, 0.05, 0.2)
     assert (cfg.rigid_max_translation_m, cfg.rigid_max_rotation_rad,
@@ -389,3 +392,25 @@ def test_config_defaults_and_checks() -> None:
                 {"max_prediction_dt_s": float("nan")}):
         with pytest.raises(ValueError):
             KinematicsConfig(**bad)  # type: ignore[arg-type]
+
+
+def test_type_stays_unknown_while_a_rotation_is_below_the_revolute_start() -> None:
+    """A hand 10 cm from a revolute axis translates well before it has turned by
+    ``revolute_min_rotation_rad``: the prismatic filter starts first, but while the rotation is
+    significant and the revolute filter has not started, no type is published."""
+    cfg = KinematicsConfig()
+    joint = revolute_joint([0.0, 1.0, 0.0], [0.0, 0.0, 0.6], 0.10)
+    est = KinematicEstimator(cfg)
+    pending = []
+    for s in demo(joint, 1.2, rest_s=0.3, duration_s=1.5):
+        b = est.update(*s)
+        if est.prismatic is not None and est.revolute is None:
+            pending.append(b.type)
+    assert pending and all(t == "unknown" for t in pending)
+    assert est.belief.type == "revolute"
+    # A prismatic motion with no rotation is known as soon as its filter runs.
+    est = KinematicEstimator(cfg)
+    for s in demo(prismatic_joint([0.3, -0.2, 0.9], [0.1, 0.05, 0.6]), 0.10, rest_s=0.3):
+        b = est.update(*s)
+        if est.prismatic is not None and b.updates >= cfg.min_updates_for_type:
+            assert b.type == "prismatic"

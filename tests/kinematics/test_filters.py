@@ -3,6 +3,7 @@ the filters' behaviour (group innovation past pi, axes at the poles, Joseph form
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Callable
 
@@ -259,11 +260,16 @@ def test_transition_jacobian_and_in_place_predict(joint: str) -> None:
 
 
 def test_process_noise_is_table_one_dt_scaled() -> None:
+    # Table I's values (the defaults lower the axis and point noise; config docstring).
+    table_one = dataclasses.replace(CFG, prismatic_axis_noise_rad2_per_s3=2.55,
+                                    revolute_axis_noise_rad2_per_s3=2.55,
+                                    revolute_point_noise_m2_per_s3=0.3)
     dt = 1.0 / 30.0
     c = dt**3 / 3.0
-    pq = np.diag(PrismaticJoint(CFG, np.array([0.0, 0.0, 1.0]), 0.1).process_noise(dt))
+    pq = np.diag(PrismaticJoint(table_one, np.array([0.0, 0.0, 1.0]), 0.1).process_noise(dt))
     np.testing.assert_allclose(pq, [2.55 * c, 2.55 * c, 0.7 * c, 75.0 * dt, 0, 0, 0])
-    rq = np.diag(RevoluteJoint(CFG, np.array([0.0, 0.0, 1.0]), np.zeros(3), 0.1).process_noise(dt))
+    rq = np.diag(RevoluteJoint(table_one, np.array([0.0, 0.0, 1.0]), np.zeros(3),
+                               0.1).process_noise(dt))
     np.testing.assert_allclose(rq, [2.55 * c, 2.55 * c, 0.3 * c, 0.3 * c, 5.1 * c, 75.0 * dt]
                                + [0.0] * 6)
     P0 = PrismaticJoint(CFG, np.array([0.0, 0.0, 1.0]), 0.1).P
@@ -330,7 +336,10 @@ def test_ekf_correct_is_joseph_and_matches_textbook() -> None:
 def test_noise_inflation_factors() -> None:
     assert prismatic_noise_inflation(0.03, CFG) == pytest.approx(1.0 / (1.0 - math.exp(-1.0)))
     assert prismatic_noise_inflation(0.0, CFG) == CFG.max_inflation_factor
-    assert revolute_noise_inflation(math.pi, CFG) == pytest.approx(1.0 / (1.0 - math.exp(-1.0)))
+    omip = dataclasses.replace(CFG, revolute_inflation_scale=1.0)  # OMIP's scale
+    assert revolute_noise_inflation(math.pi, omip) == pytest.approx(1.0 / (1.0 - math.exp(-1.0)))
+    assert revolute_noise_inflation(math.pi, CFG) == pytest.approx(
+        1.0 / (1.0 - math.exp(-1.0 / CFG.revolute_inflation_scale)))
     assert revolute_noise_inflation(0.0, CFG) == CFG.max_inflation_factor
     assert revolute_noise_inflation(1e-9, CFG) == CFG.max_inflation_factor
     R = inflated_noise(np.zeros((3, 3)), 5.0, 1e-6)

@@ -75,7 +75,8 @@ def landmark_error(T_est: Array, T_true: Array, points_body: Array) -> float:
 
 def noise_matched_config(sigma_m: float, gate: float | None = None, uniform_saliency: bool = True,
                          **overrides: object) -> TrackerConfig:
-    """Table I with every covariance (P0, Q, R, loss threshold) scaled by ``c = sigma^2 / r_lm``.
+    """Table I with every covariance (P0, Q, R, loss threshold) scaled by ``c = sigma^2 / r_lm``
+    (in SI: ``variance_unit_m2 = 1``; isotropic ``R_lm``, no articulation variance).
 
     Gains and means are unchanged by the scaling. ``gate=None`` scales the Mahalanobis thresholds
     by ``1/sqrt(c)`` (every gate decision unchanged); a number sets them all (chi-square-like
@@ -93,6 +94,9 @@ def noise_matched_config(sigma_m: float, gate: float | None = None, uniform_sali
             values[f.name] = v / np.sqrt(c) if gate is None else gate
         elif f.name.startswith("saliency_") and uniform_saliency:
             values[f.name] = 1.0
+    # The values above are SI already (variance_unit_m2 = 1); the test noise is isotropic (no
+    # depth anisotropy) and the test hand rigid (no articulation variance).
+    values.update(variance_unit_m2=1.0, depth_variance_factor=1.0, articulation_std_rad=0.0)
     values.update(overrides)
     return dataclasses.replace(base, **values)  # type: ignore[arg-type]
 

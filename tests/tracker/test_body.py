@@ -13,6 +13,7 @@ from services.tracker.body import (
     Prediction,
     body_noise_matrices,
     information_sums,
+    informative,
     innovation_covariance,
     log_likelihoods,
     measurement_jacobians,
@@ -22,6 +23,7 @@ from services.tracker.body import (
     prior_gate_passes,
     select_and_gate,
 )
+from services.tracker.landmarks import inv_sym3
 from tests.tracker.handgen import HAND
 
 RNG_SEED = 11
@@ -245,3 +247,95 @@ def test_gates_reject_a_jumped_landmark_and_ablation_keeps_it() -> None:
     assert np.flatnonzero(step.rejected).tolist() == [7]
     step = select_and_gate(preds, z, pb, r, threshold=4.0, gate=False)
     assert step.accepted.all()
+
+
+def random_covariances(rng: np.random.Generator, n: int, scale: float) -> np.ndarray:
+    """n random SPD 3x3 matrices, strongly anisotropic (like ray-aligned landmark noise)."""
+    A = rng.normal(size=(n, 3, 3))
+    out: np.ndarray = scale * (A @ A.transpose(0, 2, 1) + 0.05 * np.eye(3))
+    return out
+
+
+def test_full_covariance_update_and_likelihood_equal_the_dense_forms() -> None:
+    """Per-landmark 3x3 R_i (anisotropic): the information-form update and log-likelihood equal
+    the textbook stacked update and the dense Gaussian."""
+    rng = np.random.default_rng(RNG_SEED)
+    ekf = make_ekf(rng)
+    preds = ekf.predict(1.0 / 30.0)
+    prior = preds[1]
+    pb = HAND[1:] - HAND[1:].mean(axis=0)
+    R = random_covariances(rng, 20, 1e-3)
+    z = transform_points(se3_exp(rng.normal(scale=0.02, size=6)) @ prior.T, pb)
+    z += rng.normal(scale=0.01, size=pb.shape)
+    n = pb.shape[0]
+    q = predicted_points(prior.T, pb)
+    H = np.zeros((3 * n, 12))
+    H[:, :6] = measurement_jacobians(q).reshape(3 * n, 6)
+    R_dense = np.zeros((3 * n, 3 * n))
+    for i in range(n):
+        R_dense[3 * i:3 * i + 3, 3 * i:3 * i + 3] = R[i]
+    S = H @ prior.P @ H.T + R_dense
+    np.testing.assert_allclose(S, innovation_covariance(prior, pb, R), atol=1e-14)
+    W, _ = inv_sym3(R)
+    A, b, c = information_sums(q[None], (z - q)[None], W)
+    np.testing.assert_allclose(A[0], H[:, :6].T @ np.linalg.solve(R_dense, H[:, :6]), rtol=1e-9)
+    np.testing.assert_allclose(b[0], H[:, :6].T @ np.linalg.solve(R_dense, (z - q).ravel()),
+                               rtol=1e-9)
+    ll = log_likelihoods(prior.P[None, :6, :6], A, b, c, float(np.log(np.linalg.det(R)).sum()), n)
+    dense = multivariate_normal(mean=np.zeros(3 * n), cov=S).logpdf((z - q).ravel())
+    assert ll[0] == pytest.approx(dense, rel=1e-10, abs=1e-8)
+    ekf.update(prior, z, pb, R)
+    K = np.linalg.solve(S, H @ prior.P).T
+    dx = K @ (z - q).ravel()
+    I_KH = np.eye(12) - K @ H
+    np.testing.assert_allclose(ekf.T, se3_exp(dx[:6]) @ prior.T, atol=1e-12)
+    np.testing.assert_allclose(ekf.P, I_KH @ prior.P @ I_KH.T + K @ R_dense @ K.T, atol=1e-12)
+
+
+def test_gates_with_full_covariances_equal_explicit_distances() -> None:
+    rng = np.random.default_rng(RNG_SEED)
+    ekf = make_ekf(rng)
+    prior = ekf.predict(1.0 / 30.0)[0]
+    P = prior.P[:6, :6]
+    pb = HAND[1:] - HAND[1:].mean(axis=0)
+    R = random_covariances(rng, 20, 2e-5)
+    z = transform_points(se3_exp(rng.normal(scale=0.01, size=6)) @ prior.T, pb)
+    z += np.einsum("nij,nj->ni", np.linalg.cholesky(R), rng.normal(size=(20, 3)))
+    z[4] += [0.0, 0.05, 0.0]
+    q = predicted_points(prior.T, pb)
+    y = z - q
+    H = measurement_jacobians(q)
+    W, _ = inv_sym3(R)
+    A_all, b_all, _ = information_sums(q[None], y[None], W)
+    loo = np.empty(20)
+    prior_d = np.empty(20)
+    for i in range(20):
+        Wi = W.copy()
+        Wi[i] = 0.0
+        A, b, _ = information_sums(q[None], y[None], Wi)
+        Lam = np.linalg.inv(P) + A[0]
+        e = y[i] - H[i] @ np.linalg.solve(Lam, b[0])
+        loo[i] = np.sqrt(e @ np.linalg.solve(H[i] @ np.linalg.inv(Lam) @ H[i].T + R[i], e))
+        prior_d[i] = np.sqrt(y[i] @ np.linalg.solve(H[i] @ P @ H[i].T + R[i], y[i]))
+    assert loo[4] > 4.0
+    for thr in (1.0, 2.0, 3.0, 5.0):
+        np.testing.assert_array_equal(
+            posterior_residual_passes(q, y, R, P, A_all[0], b_all[0], thr), loo < thr)
+        np.testing.assert_array_equal(prior_gate_passes(q[None], y[None], P[None], R, thr)[0],
+                                      prior_d < thr)
+
+
+def test_only_an_informative_kinematic_prediction_is_offered() -> None:
+    """A kinematic prediction vaguer than the constant-velocity one in any direction (a joint
+    filter that has just started) is left out of the model choice."""
+    T = se3_exp(np.array([0.0, 0.0, 0.5, 0.0, 0.0, 0.0]))
+    _, Q = body_noise_matrices((1e-6, 1e-5, 1e-2, 1e-1), (1e-6, 1e-5, 1e-2, 1e-1))
+    ekf = HandBodyEkf(T, np.zeros(6), 1e-6 * np.eye(12), Q, 1.0 / 30.0)
+    precise = ekf.predict(1.0 / 30.0, (T, 1e-7 * np.eye(6)))
+    assert [p.model for p in precise] == ["static", "constant_velocity", "kinematic"]
+    vague = np.diag([1e-7] * 5 + [1.0])  # one direction (a rotation) is unknown
+    assert [p.model for p in ekf.predict(1.0 / 30.0, (T, vague))] == ["static",
+                                                                       "constant_velocity"]
+    P_cv = precise[1].P[:6, :6]
+    assert informative(0.5 * P_cv, P_cv) and informative(P_cv, P_cv)
+    assert not informative(P_cv + 1e-9 * np.eye(6), P_cv)

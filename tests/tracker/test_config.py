@@ -86,3 +86,42 @@ def test_table_one_thresholds_mean_what_the_docstring_says() -> None:
     assert 3 * bank.pp[0] == pytest.approx(0.116, abs=2e-3)  # steady posterior trace
     bank.predict(c.nominal_dt_s)  # one skipped correction ...
     assert 3 * bank.pp[0] >= c.lm_loss_trace_m2  # ... reaches the loss threshold
+
+
+def test_internal_config_is_table_one_in_physical_units() -> None:
+    """``internal()`` multiplies every Table-I covariance by the variance unit and divides every
+    Table-I gate by its square root: the Kalman gain and the gate distance in standard deviations
+    are unchanged, the covariances are in m^2."""
+    c = TrackerConfig()
+    u = c.variance_unit_m2
+    i = c.internal()
+    assert i.variance_unit_m2 == 1.0 and i.internal() is i
+    assert i.r_lm_m2 == pytest.approx(0.05 * u) and i.q_rb_rotation_rad2 == pytest.approx(3.0 * u)
+    assert i.lm_loss_trace_m2 == pytest.approx(0.3 * u)
+    assert i.mahalanobis_lm == pytest.approx(0.19 / np.sqrt(u))
+    assert i.ransac_inlier_mahalanobis == pytest.approx(0.25 / np.sqrt(u))
+    assert (i.articulation_std_rad, i.depth_variance_factor) == (c.articulation_std_rad,
+                                                                 c.depth_variance_factor)
+    gains = []
+    for cfg in (c, i):
+        bank = LandmarkFilterBank(1, cfg)
+        z = np.zeros((1, 3))
+        bank.update(z, cfg.r_lm_m2)
+        for _ in range(100):
+            bank.predict(cfg.nominal_dt_s)
+            bank.update(z, cfg.r_lm_m2)
+        bank.predict(cfg.nominal_dt_s)
+        gains.append(bank.pp[0] / (bank.pp[0] + cfg.r_lm_m2))
+    assert gains[0] == pytest.approx(gains[1], rel=1e-12)
+    # The unit reading: R_lm is the detector's lateral noise, ~7 mm per axis.
+    assert np.sqrt(i.r_lm_m2) == pytest.approx(0.0071, abs=2e-4)
+
+
+@pytest.mark.parametrize("change", [
+    {"variance_unit_m2": 0.0}, {"depth_variance_factor": -1.0}, {"articulation_std_rad": -0.1},
+    {"max_correlation_factor": 0.5}, {"template_memory_frames": -1},
+    {"template_candidate_frames": -2},
+])
+def test_bad_physical_terms_are_refused(change: dict[str, object]) -> None:
+    with pytest.raises(ValueError):
+        TrackerConfig(**change)  # type: ignore[arg-type]

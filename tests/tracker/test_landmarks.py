@@ -9,12 +9,17 @@ import pytest
 
 from services.tracker.config import TrackerConfig
 from services.tracker.landmarks import (
+    PALM,
     LandmarkFilterBank,
+    articulation_variances,
     body_landmark_mask,
+    body_measurement_covariances,
     body_measurement_variances,
     inv_sym3,
     missing_mask,
+    ray_measurement_covariances,
 )
+from tests.tracker.handgen import HAND
 
 
 class ReferenceKf:
@@ -32,10 +37,10 @@ class ReferenceKf:
         self.x = F @ self.x
         self.P = F @ self.P @ F.T + Q * dt / self.c.nominal_dt_s
 
-    def update(self, z: np.ndarray, gate: bool) -> bool:
+    def update(self, z: np.ndarray, gate: bool, R: np.ndarray | None = None) -> bool:
         """Returns False if gated out."""
         H = np.hstack([np.eye(3), np.zeros((3, 3))])
-        R = self.c.r_lm_m2 * np.eye(3)
+        R = self.c.r_lm_m2 * np.eye(3) if R is None else R
         y = z - H @ self.x
         S = H @ self.P @ H.T + R
         if gate and np.sqrt(y @ np.linalg.solve(S, y)) >= self.c.mahalanobis_lm:
@@ -208,3 +213,94 @@ def test_inv_sym3_matches_numpy() -> None:
     inv, det = inv_sym3(S)
     np.testing.assert_allclose(inv, np.linalg.inv(S), rtol=1e-9, atol=1e-9)
     np.testing.assert_allclose(det, np.linalg.det(S), rtol=1e-10)
+
+
+def test_anisotropic_bank_equals_per_landmark_reference_kf() -> None:
+    """Per-row measurement covariances about the viewing ray (depth variance 4x the lateral):
+    the batched bank still equals the textbook 6x6 filter, gating and loss included (the loss
+    threshold scales with trace(R) / (3 r_lm))."""
+    rng = np.random.default_rng(8)
+    config = TrackerConfig()
+    n = 21
+    bank = LandmarkFilterBank(n, config)
+    refs: list[ReferenceKf | None] = [None] * n
+    truth = rng.normal(scale=0.1, size=(n, 3)) + np.array([0.0, 0.0, 0.7])
+    vel = rng.normal(scale=0.1, size=(n, 3))
+    dropped = 0
+    for k in range(120):
+        dt = config.nominal_dt_s
+        truth += vel * dt
+        z = truth + rng.normal(scale=0.02, size=(n, 3))
+        z[rng.random(n) < 0.1] += 0.3
+        z[rng.random(n) < 0.1] = np.nan
+        R = ray_measurement_covariances(np.nan_to_num(z), config.r_lm_m2, 4.0)
+        if k:
+            bank.predict(dt)
+            for r in refs:
+                if r is not None:
+                    r.predict(dt)
+        upd = bank.update(z, R)
+        for i in range(n):
+            r = refs[i]
+            if r is None:
+                if np.isfinite(z[i]).all():
+                    refs[i] = ReferenceKf(config, z[i])
+                continue
+            accepted = r.update(z[i], gate=True, R=R[i]) if np.isfinite(z[i]).all() else False
+            assert upd.fresh[i] == accepted
+            ratio = max(float(np.trace(R[i])) / (3 * config.r_lm_m2), 1.0)
+            if np.trace(r.P[:3, :3]) >= config.lm_loss_trace_m2 * ratio:
+                refs[i] = None
+                dropped += 1
+                assert not bank.alive[i]
+                continue
+            assert bank.alive[i]
+            np.testing.assert_allclose(bank.x[i], r.x, atol=1e-12)
+            np.testing.assert_allclose(bank.covariance(i), r.P, atol=1e-12)
+    assert dropped > 10  # the outliers exercised the gate and the loss threshold
+
+
+def test_ray_covariances_are_lateral_r_and_depth_factor_r() -> None:
+    rng = np.random.default_rng(0)
+    points = rng.normal(size=(5, 3)) + np.array([0.0, 0.0, 1.0])
+    points[2] = np.nan
+    R = ray_measurement_covariances(points, 2e-5, 4.0)
+    for i in (0, 1, 3, 4):
+        u = points[i] / np.linalg.norm(points[i])
+        np.testing.assert_allclose(R[i] @ u, 8e-5 * u, atol=1e-18)  # along the ray: 4 r
+        lateral = np.cross(u, [1.0, 0.0, 0.0])
+        np.testing.assert_allclose(R[i] @ lateral, 2e-5 * lateral, atol=1e-18)
+    np.testing.assert_allclose(R[2], 2e-5 * np.eye(3))  # no ray: isotropic
+    np.testing.assert_allclose(ray_measurement_covariances(points[:2], 2e-5, 1.0),
+                               np.broadcast_to(2e-5 * np.eye(3), (2, 3, 3)))
+
+
+def test_articulation_variance_grows_along_each_finger_from_the_palm() -> None:
+    pb = HAND - HAND[1:].mean(axis=0)
+    var = articulation_variances(pb, 0.1)
+    assert (var[list(PALM)] == 0.0).all()
+    for base in (5, 9, 13, 17):  # MCP, PIP, DIP, tip
+        assert 0.0 < var[base + 1] < var[base + 2] < var[base + 3]
+    # Index tip: flexion at MCP, PIP and DIP moves it by theta times its distance to each.
+    expected = sum(float(np.sum((pb[8] - pb[j]) ** 2)) for j in (5, 6, 7)) * 0.01 / 3.0
+    assert var[8] == pytest.approx(expected)
+    assert var[2] == pytest.approx(float(np.sum((pb[2] - pb[1]) ** 2)) * 0.01 / 3.0)  # thumb MCP
+    assert (articulation_variances(pb, 0.0) == 0.0).all()
+    missing = pb.copy()
+    missing[6] = np.nan  # a joint outside the model contributes nothing
+    assert articulation_variances(missing, 0.1)[7] == pytest.approx(
+        float(np.sum((pb[7] - pb[5]) ** 2)) * 0.01 / 3.0)
+
+
+def test_body_covariances_add_articulation_and_ablation_is_uniform() -> None:
+    config = TrackerConfig()
+    rng = np.random.default_rng(1)
+    A = rng.normal(size=(21, 3, 3))
+    P = A @ A.transpose(0, 2, 1) * 1e-5
+    art = np.linspace(0.0, 1e-4, 21)
+    R = body_measurement_covariances(P, config, art)
+    s = np.asarray(config.saliency_factors())
+    np.testing.assert_allclose(R, s[:, None, None] * P + art[:, None, None] * np.eye(3))
+    ablation = dataclasses.replace(config, use_uncertainty_models=False)
+    np.testing.assert_array_equal(body_measurement_covariances(P, ablation, art),
+                                  np.broadcast_to(0.05 * np.eye(3), (21, 3, 3)))

@@ -118,10 +118,19 @@ def steady_landmark_gain(config: TrackerConfig) -> float:
 def test_covariance_is_consistent_with_noise_matched_config() -> None:
     """NEES of the 6-D pose error over a 40 s run (3 mm landmark noise).
 
-    Table I's covariances correspond to ~20 cm landmark noise (R_lm = 0.05 m^2): against 3 mm
-    noise its raw NEES is ~1e-3 (checked below with ``calibrate_covariance=False``); the default
-    publishes the covariance scaled by the a-posteriori variance factor, whose NEES must then be
-    within a factor of two of the expected value. With every covariance scaled to the noise (config
+    Table I read literally in SI (``variance_unit_m2=1``) corresponds to ~20 cm landmark noise
+    (R_lm = 0.05 m^2): against 3 mm noise its raw NEES is ~1e-3 (checked below with
+    ``calibrate_covariance=False``); the default publishes the covariance scaled by the
+    a-posteriori variance factor and the residual-correlation factor, whose NEES must then be
+    within a factor of two of the expected value (the landmark filters correlate successive
+    errors only a little here: white detector noise). The derivation below is for the marginal
+    covariance with a fixed body model, so the noise-matched run turns the correlation factor
+    and the body-model refinement off (``max_correlation_factor=1``, ``template_memory_frames=0``:
+    a refined model no longer carries the initialisation window's noise into the residuals, the
+    variance factor then drops to ~(1/(2-K)) and the NEES rises to the ideal 6; the factor is
+    tested in ``test_published_covariance_accounts_for_error_correlation``). With every
+    covariance scaled
+    to the noise (config
     docstring; saliency factors 1 since the synthetic noise is the same for every landmark), the
     only known mismatch is at the landmark level: the true landmarks move far more smoothly than
     the random walk Q_lm, and a filtered landmark's error variance is then K/(2-K) sigma^2
@@ -130,8 +139,9 @@ def test_covariance_is_consistent_with_noise_matched_config() -> None:
     measured autocorrelation time of the NEES series is ~2 frames, so N/5 is conservative.
     """
     nees_runs = []
-    for config in (hg.noise_matched_config(NOISE_M, gate=4.0), TrackerConfig(),
-                   TrackerConfig(calibrate_covariance=False)):
+    for config in (hg.noise_matched_config(NOISE_M, gate=4.0, max_correlation_factor=1.0,
+                                           template_memory_frames=0),
+                   TrackerConfig(), TrackerConfig(calibrate_covariance=False, variance_unit_m2=1.0)):
         rng = np.random.default_rng(2)
         tracker = HandTracker(config)
         log = hg.run(tracker, hg.Scenario(wobble, 40.0), noisy_hands(rng))
@@ -209,8 +219,13 @@ def test_injected_outliers_are_rejected(name: str, low_m: float, seed: int) -> N
 
 def test_table_one_lets_small_jumps_through() -> None:
     """Documents Table I on the full 5-30 cm range: jumps of 5-9 cm sit inside its landmark
-    gate and, on the s=1.5 landmarks, inside the body gate, so the error grows by ~1.6x."""
-    clean, dirty, _, caught = _outlier_runs(TrackerConfig(), 0.05, 0.30)
+    gate and, on the s=1.5 landmarks, inside the body gate, so the error grows by ~1.6x.
+
+    Table I's noise model only (isotropic R_lm, no articulation variance): on this rigid test hand
+    with isotropic noise the default's articulation variance and along-ray variance only widen
+    the body gate of the distal landmarks (ratio ~2.1 with them)."""
+    table_one = TrackerConfig(articulation_std_rad=0.0, depth_variance_factor=1.0)
+    clean, dirty, _, caught = _outlier_runs(table_one, 0.05, 0.30)
     print(f"table1 5-30 cm: {caught:.1%} flagged, error ratio {dirty / clean:.2f}")
     assert caught > 0.75
     assert dirty < 2.0 * clean
@@ -304,10 +319,15 @@ def test_body_is_reinitialised_after_a_long_absence() -> None:
 
 def _revolute_run(prior_kind: str, config: TrackerConfig) -> tuple[Counter[str], Counter[str]]:
     """Rest 2 s, then a valve-like turn with a varying rate (1.5 (1 - cos 0.6 t) rad) for 8 s.
-    Returns the motion-model counts at rest and while turning (after 3 s)."""
+    Returns the motion-model counts at rest and while turning (after 3 s, at >= 0.3 rad/s, i.e.
+    >= 0.6 deg per frame: where the turn moves the landmarks by more than their noise, so that a
+    correct prediction of the motion can be told from "nothing moved")."""
 
     def angle(t: float) -> float:
         return 0.0 if t < 2.0 else 1.5 * (1.0 - np.cos(0.6 * (t - 2.0)))
+
+    def rate(t: float) -> float:
+        return 0.0 if t < 2.0 else 0.9 * np.sin(0.6 * (t - 2.0))
 
     rng = np.random.default_rng(7)
     tracker = HandTracker(config)
@@ -327,20 +347,29 @@ def _revolute_run(prior_kind: str, config: TrackerConfig) -> tuple[Counter[str],
     rest = Counter(log.at(k).motion_model for k in log.initialized()
                    if hg.Scenario.time_of(log.stamps[k]) < 2.0)
     turning = Counter(log.at(k).motion_model for k in log.initialized()
-                      if hg.Scenario.time_of(log.stamps[k]) > 3.0)
+                      if hg.Scenario.time_of(log.stamps[k]) > 3.0
+                      and abs(rate(hg.Scenario.time_of(log.stamps[k]))) >= 0.3)
     return rest, turning
 
 
 def test_kinematic_model_wins_with_a_correct_prior_and_static_at_rest() -> None:
-    rest, turning = _revolute_run("oracle", TrackerConfig())
-    print(f"rest {dict(rest)}, turning {dict(turning)}")
-    assert rest["static"] >= 0.95 * sum(rest.values())
-    assert turning["kinematic"] >= 0.9 * sum(turning.values())
-    _, unaided = _revolute_run("none", TrackerConfig())
-    assert unaided["kinematic"] == 0
-    _, misled = _revolute_run("wrong", TrackerConfig())
-    print(f"30 cm wrong prior: {dict(misled)}")
-    assert misled["kinematic"] <= 0.1 * sum(misled.values())
+    """The model choice compares likelihoods in physical units (TrackerConfig.internal): the
+    default's R_rb assumes 7 mm landmark noise against the test's 3 mm, so a correct prior and
+    "nothing moved" are often both plausible within one frame (~40-50 % of the turning frames go to
+    the kinematic model); with the covariances matched to the noise the correct prior wins the
+    clear majority. (Before the variance unit, Table-I-sized covariances made every landmark
+    fit every model, and the most confident prediction won ~always, by the log-determinant.)"""
+    for config, share in ((TrackerConfig(), 0.3),
+                          (hg.noise_matched_config(NOISE_M, gate=4.0), 0.7)):
+        rest, turning = _revolute_run("oracle", config)
+        print(f"rest {dict(rest)}, turning {dict(turning)}")
+        assert rest["static"] >= 0.95 * sum(rest.values())
+        assert turning["kinematic"] >= share * sum(turning.values())
+        _, unaided = _revolute_run("none", config)
+        assert unaided["kinematic"] == 0
+        _, misled = _revolute_run("wrong", config)
+        print(f"30 cm wrong prior: {dict(misled)}")
+        assert misled["kinematic"] <= 0.1 * sum(misled.values())
 
 
 @pytest.mark.parametrize("name", ["table1", "noise_matched"])
@@ -382,7 +411,9 @@ def test_moving_camera_tracks_in_the_world_frame() -> None:
     runs = []
     for moving in (True, False):
         scenario = hg.Scenario(world_hand, 8.0, camera if moving else lambda t: np.eye(4))
-        tracker = HandTracker(TrackerConfig())
+        # Isotropic R_lm: the estimates are then independent of where the camera is (with the
+        # default along-ray variance they depend on the viewing rays, see the next test).
+        tracker = HandTracker(TrackerConfig(depth_variance_factor=1.0))
         runs.append(hg.run(tracker, scenario, lambda k, T, W: [hg.observe(T, T_world_camera=W)]))
     moving_log, fixed_log = runs
     for a, b in zip(moving_log.estimates, fixed_log.estimates, strict=True):
@@ -454,14 +485,25 @@ def test_landmark_statuses_and_ablation() -> None:
     assert est is not None
     assert est.landmark_status[0] == STATUS_EXCLUDED
     assert (est.landmark_status[1:] == STATUS_USED).all()
-    np.testing.assert_allclose(est.landmark_variance[8] * 3.0, est.landmark_variance[9],
+    rigid = HandTracker(TrackerConfig(articulation_std_rad=0.0))
+    for k in range(6):
+        est_rigid = rigid.step(1_000_000_000 + k * hg.FRAME_NS, [obs])
+    assert est_rigid is not None
+    np.testing.assert_allclose(est_rigid.landmark_variance[8] * 3.0,
+                               est_rigid.landmark_variance[9],
                                rtol=1e-6)  # tip s=0.5 vs MCP s=1.5, same filter state
+    # The articulation variance adds to the finger landmarks only (MCPs sit on the palm).
+    np.testing.assert_allclose(est.landmark_variance[9], est_rigid.landmark_variance[9],
+                               rtol=1e-6)
+    assert est.landmark_variance[8] > est_rigid.landmark_variance[8]
     ablation = HandTracker(dataclasses.replace(TrackerConfig(), use_uncertainty_models=False))
     for k in range(6):
         est = ablation.step(1_000_000_000 + k * hg.FRAME_NS, [obs])
     assert est is not None
     assert (est.landmark_status == STATUS_USED).all()
-    np.testing.assert_allclose(est.landmark_variance, 3 * 0.05, rtol=1e-6)
+    c = TrackerConfig()  # uniform R_rb = R_lm (Table I's 0.05 units, in m^2)
+    np.testing.assert_allclose(est.landmark_variance, 3 * c.r_lm_m2 * c.variance_unit_m2,
+                               rtol=1e-6)
 
 
 def test_reset_makes_runs_repeatable() -> None:
@@ -520,3 +562,120 @@ def test_random_bad_sequences_never_raise_or_emit_nan(events: list[str], seed: i
         if est is not None:
             assert_finite(est)
             assert est.motion_model in ("static", "constant_velocity", "kinematic")
+
+
+# --- physical terms beyond Table I ---------------------------------------------------------------
+
+def test_moving_camera_with_anisotropic_noise_is_frame_consistent() -> None:
+    """With the default along-ray variance, R_lm depends on the viewing rays: a camera and hand
+    moved together by a world transform G see the same images, so the world-frame estimates are
+    G times those of the untransformed setup (R_lm is rotated into the world frame with its
+    ray)."""
+    G = se3_exp(np.array([0.3, -0.2, 0.1, 0.4, 1.1, -0.7]))
+    runs = []
+    for world in (np.eye(4), G):
+        scenario = hg.Scenario(lambda t, W=world: W @ wobble(t), 4.0, lambda t, W=world: W)
+        tracker = HandTracker(TrackerConfig())
+        assert tracker.config.depth_variance_factor != 1.0
+        rng = np.random.default_rng(5)
+        runs.append(hg.run(tracker, scenario, lambda k, T, W, rng=rng: [
+            hg.observe(T, rng, NOISE_M, T_world_camera=W)]))
+    plain, moved = runs
+    assert plain.initialized() == moved.initialized()
+    # The body frame's axes are parallel to the tracking frame (ransac.py), so the body frames
+    # differ by a constant rotation; the displacements are G-conjugate.
+    k0 = plain.initialized()[0]
+    P0_inv, M0_inv = se3_inverse(plain.at(k0).pose), se3_inverse(moved.at(k0).pose)
+    for k in plain.initialized():
+        np.testing.assert_allclose(moved.at(k).pose @ M0_inv,
+                                   G @ plain.at(k).pose @ P0_inv @ se3_inverse(G), atol=1e-9)
+
+
+def test_published_covariance_accounts_for_error_correlation() -> None:
+    """Landmark errors that persist over frames (AR(1), rho = 0.9 per frame, 3 mm): the mean of
+    B successive poses is then far less accurate than B independent ones. The published
+    covariance is inflated by the measured residual correlation, so that a consumer treating
+    successive poses as independent (the kinematic filters) gets the variance of a block mean
+    right; without the inflation it is B-fold too confident... up to the (1+rho)/(1-rho) = 19
+    integrated correlation."""
+    rho, block, frames = 0.9, 60, 1800
+    ratios = []
+    for max_factor in (30.0, 1.0):
+        config = hg.noise_matched_config(NOISE_M, gate=4.0, max_correlation_factor=max_factor)
+        rng = np.random.default_rng(9)
+        noise = [rng.normal(scale=NOISE_M, size=(21, 3))]
+        for _ in range(frames):
+            noise.append(rho * noise[-1]
+                         + np.sqrt(1 - rho**2) * rng.normal(scale=NOISE_M, size=(21, 3)))
+
+        def hands(k: int, T: np.ndarray, W: np.ndarray | None,
+                  noise: list[np.ndarray] = noise) -> list[HandObservation]:
+            obs = hg.observe(T)
+            return [dataclasses.replace(obs, points=obs.points + noise[k])]
+
+        tracker = HandTracker(config)
+        log = hg.run(tracker, hg.Scenario(lambda t: T0, frames / 30.0), hands)
+        T_hb = hg.body_alignment(tracker)
+        ks = log.initialized()[60:]
+        errors = np.array([se3_log(log.at(k).pose @ se3_inverse(log.truth[k] @ T_hb))
+                           for k in ks])
+        claimed = np.mean([log.at(k).covariance[:6, :6] for k in ks], axis=0) / block
+        means = errors[:len(ks) // block * block].reshape(-1, block, 6).mean(axis=1)
+        actual = np.cov(means.T)
+        ratios.append(float(np.trace(actual) / np.trace(claimed)))
+        if max_factor > 1.0:
+            print(f"correlation factor {tracker.correlation_factor:.1f}")
+    print(f"block-mean variance / claimed: inflated {ratios[0]:.2f}, marginal {ratios[1]:.2f}")
+    assert 0.33 < ratios[0] < 3.0
+    assert ratios[1] > 4.0 * ratios[0]
+
+
+def test_body_model_is_refined_and_completed() -> None:
+    """Two landmarks missing during the initialisation join the body model after
+    ``template_candidate_frames`` frames, near their true place; the model's shape error
+    shrinks as frames are averaged; and the body frame of a static hand does not drift."""
+    config = hg.noise_matched_config(NOISE_M, gate=4.0)
+    rng = np.random.default_rng(6)
+    late = [8, 12]
+
+    def hands(k: int, T: np.ndarray, W: np.ndarray | None) -> list[HandObservation]:
+        obs = hg.observe(T, rng, NOISE_M)
+        if k < 15:
+            vis = obs.visibility.copy()
+            vis[late] = 0.0
+            obs = dataclasses.replace(obs, visibility=vis)
+        return [obs]
+
+    def shape_error(tracker: HandTracker) -> float:
+        pb = tracker.body_points
+        assert pb is not None
+        T_hb = hg.body_alignment(tracker)
+        have = np.isfinite(pb).all(axis=1)
+        true = (hg.HAND - T_hb[:3, 3]) @ T_hb[:3, :3]  # the hand's landmarks in the body frame
+        return float(np.sqrt(np.mean(np.sum((pb[have] - true[have]) ** 2, axis=1))))
+
+    tracker = HandTracker(config)
+    errors, poses = [], []
+    for k, stamp in enumerate(hg.Scenario(lambda t: T0, 8.0).stamps()):
+        est = tracker.step(stamp, hands(k, T0, None))
+        if tracker.initialized:
+            if not errors:
+                body = tracker.body_points
+                assert body is not None and np.isnan(body[late]).all()
+            errors.append(shape_error(tracker))
+            assert est is not None
+            poses.append(est.pose)
+    body = tracker.body_points
+    assert body is not None and np.isfinite(body).all(axis=1)[1:].all()
+    print(f"model RMS error: {1e3 * errors[0]:.2f} mm at initialisation, "
+          f"{1e3 * errors[-1]:.2f} mm after 8 s")
+    assert errors[-1] < 0.5 * errors[0] and errors[-1] < 0.001
+    # No drift of the body frame: the mean pose over the first and the last 2 s agree (each pose
+    # alone is ~0.5 deg noisy here).
+    early = np.mean([se3_log(p @ se3_inverse(poses[30])) for p in poses[30:90]], axis=0)
+    final = np.mean([se3_log(p @ se3_inverse(poses[30])) for p in poses[-60:]], axis=0)
+    drift = final - early
+    print(f"drift {np.degrees(np.linalg.norm(drift[3:])):.2f} deg, "
+          f"{1e3 * np.linalg.norm(drift[:3]):.2f} mm")
+    assert np.linalg.norm(drift[3:]) < np.radians(0.3)
+    assert np.linalg.norm(drift[:3]) < 0.003
