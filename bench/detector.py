@@ -34,12 +34,12 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import os
-import subprocess
 import sys
 import tempfile
 import threading
 import time
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 import cv2
@@ -48,6 +48,7 @@ import numpy as np
 from bench.common import percentiles_ms, write_result
 from services.common.bus import Bus, ZenohOptions
 from services.common.keys import Keys
+from services.common.processes import ProcessGroup, client_args
 from services.common.protocol import CameraIntrinsics, HandLandmarks, RgbdFrame
 from services.detector.config import DetectorConfig
 from services.detector.models import default_models_dir, prepare
@@ -113,21 +114,16 @@ def library(configs: dict[str, DetectorConfig], message: RgbdFrame, frames: int,
 def service(config_args: list[str], message: RgbdFrame, rate_hz: float, seconds: float,
             device: str, threads: int) -> dict[str, Any]:
     keys = Keys("benchdet")
-    tmp = tempfile.mkdtemp(prefix="handkse-bench-")
-    endpoint = f"unixsock-stream/{tmp}/router.sock"
-    z = ["-m", "client", "-e", endpoint, "--no-multicast-scouting", "--rig", keys.rig]
-    env = dict(os.environ, PYTHONUNBUFFERED="1")
-    router = subprocess.Popen([sys.executable, "-m", "services", "router", "-l", endpoint,
-                               "--no-multicast-scouting"], env=env, stdout=subprocess.DEVNULL)
-    detector = subprocess.Popen([sys.executable, "-m", "services.detector", *z, "--device",
-                                 device, "--threads", str(threads), *config_args], env=env,
-                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    group = ProcessGroup(Path(tempfile.mkdtemp(prefix="handkse-bench-")))
+    endpoint = f"unixsock-stream/{group.workdir}/router.sock"
+    group.start_router(endpoint)
+    detector = group.start("detector", "detector", *client_args(endpoint, keys.rig), "--device",
+                           device, "--threads", str(threads), *config_args)
     sent_at: dict[int, float] = {}
     latencies: list[float] = []
     received: list[int] = []
     lock = threading.Lock()
     try:
-        time.sleep(0.5)
         with Bus(ZenohOptions(mode="client", connect=(endpoint,),
                               multicast_scouting=False)) as bus:
             deadline = time.monotonic() + 60.0
@@ -174,12 +170,7 @@ def service(config_args: list[str], message: RgbdFrame, rate_hz: float, seconds:
                 got = [s for s in received if s in sent_at]
                 lat = list(latencies)
     finally:
-        for p in (detector, router):
-            p.terminate()
-            try:
-                p.wait(10)
-            except subprocess.TimeoutExpired:
-                p.kill()
+        group.stop_all()
     return {"input_hz": rate_hz, "sent": n, "processed": len(got),
             "fps": len(got) / elapsed, "latency_ms": percentiles_ms(lat) if lat else None}
 

@@ -9,15 +9,15 @@
 from __future__ import annotations
 
 import os
-import subprocess
-import sys
 import tempfile
 import threading
 import time
+from pathlib import Path
 
 from bench.common import percentiles_ms, write_result
 from services.common.bus import Bus, ZenohOptions
 from services.common.keys import Keys
+from services.common.processes import ProcessGroup, client_args
 from services.common.protocol import HandBody, HandLandmarks
 from services.synthetic.generator import generate
 from services.synthetic.replay import landmark_messages
@@ -48,15 +48,10 @@ def library(repeats: int = 5) -> dict[str, object]:
 
 def service(rate_hz: float = 200.0, seconds: float = 10.0) -> dict[str, object]:
     keys = Keys("bench")
-    tmp = tempfile.mkdtemp(prefix="handkse-bench-")
-    endpoint = f"unixsock-stream/{tmp}/router.sock"
-    z = ["-m", "client", "-e", endpoint, "--no-multicast-scouting", "--rig", keys.rig]
-    env = dict(os.environ, PYTHONUNBUFFERED="1")
-    router = subprocess.Popen([sys.executable, "-m", "services", "router", "-l", endpoint,
-                               "--no-multicast-scouting"], env=env, stdout=subprocess.DEVNULL)
-    time.sleep(1.0)
-    tracker = subprocess.Popen([sys.executable, "-m", "services", "tracker", *z], env=env,
-                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    group = ProcessGroup(Path(tempfile.mkdtemp(prefix="handkse-bench-")))
+    endpoint = f"unixsock-stream/{group.workdir}/router.sock"
+    group.start_router(endpoint)
+    group.start("tracker", "tracker", *client_args(endpoint, keys.rig))
     demo = generate("key", 3, 0)
     frames = landmark_messages(demo)
     received: list[int] = []
@@ -93,9 +88,7 @@ def service(rate_hz: float = 200.0, seconds: float = 10.0) -> dict[str, object]:
                 done.wait(0.05)
             stats = bus.get(keys.stats("tracker") + "?format=json")[0][1].decode()
     finally:
-        for p in (tracker, router):
-            p.terminate()
-            p.wait(10)
+        group.stop_all()
     return {"input_rate_hz": rate_hz, "sent": n, "hand_bodies_received": len(received),
             "dropped": n - len(received), "achieved_fps": len(received) / seconds,
             "landmarks_to_body_latency_ms": percentiles_ms(latencies) if latencies else None,

@@ -9,10 +9,6 @@ ground truth), then queries the final model with ``get`` and prints it beside th
 from __future__ import annotations
 
 import argparse
-import os
-import socket
-import subprocess
-import sys
 import tempfile
 import threading
 import time
@@ -23,6 +19,7 @@ import numpy as np
 
 from services.common.bus import Bus, BusError, ZenohOptions
 from services.common.keys import Keys
+from services.common.processes import ProcessGroup, free_tcp_endpoint
 from services.common.protocol import KinematicModel
 from services.common.recording import replay
 from services.evaluation.pipeline import joint_estimate
@@ -33,12 +30,6 @@ from services.synthetic.replay import demonstration_recording
 SERVICES = ("tracker", "kinematics")
 
 
-def free_tcp_endpoint() -> str:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return f"tcp/127.0.0.1:{s.getsockname()[1]}"
-
-
 def truth_of(demo: Demonstration) -> JointEstimate:
     joint = demo.truth.joint
     return JointEstimate(type=joint.type, axis=np.array(joint.axis), point=np.array(joint.point))
@@ -47,41 +38,6 @@ def truth_of(demo: Demonstration) -> JointEstimate:
 def demo_tangent_error_deg(model: KinematicModel, demo: Demonstration) -> float:
     positions = demo.truth.grasp_points
     return float(np.degrees(tangent_error(truth_of(demo), joint_estimate(model), positions)))
-
-
-class ServiceProcesses:
-    """Router + services as subprocesses of this one; all terminated on exit."""
-
-    def __init__(self, endpoint: str, workdir: Path, rig: str) -> None:
-        self.endpoint = endpoint
-        self.workdir = workdir
-        self.rig = rig
-        self.procs: list[subprocess.Popen[bytes]] = []
-
-    def start(self, name: str, *args: str) -> None:
-        log = open(self.workdir / f"{name}.log", "wb")  # noqa: SIM115 - owned by the child
-        env = dict(os.environ, PYTHONUNBUFFERED="1")
-        self.procs.append(subprocess.Popen([sys.executable, "-m", "services", *args],
-                                           stdout=log, stderr=subprocess.STDOUT, env=env))
-
-    def __enter__(self) -> ServiceProcesses:
-        z = ["--no-multicast-scouting", "--rig", self.rig]
-        self.start("router", "router", "-l", self.endpoint, *z)
-        client = ["-m", "client", "-e", self.endpoint, *z]
-        self.start("tracker", "tracker", *client)
-        self.start("kinematics", "kinematics", *client,
-                   "--state-file", str(self.workdir / "kinematics.state"))
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        for p in self.procs:
-            if p.poll() is None:
-                p.terminate()
-        for p in self.procs:
-            try:
-                p.wait(5)
-            except subprocess.TimeoutExpired:
-                p.kill()
 
 
 def _progress_line(model: KinematicModel, demo: Demonstration, t: float) -> str:
@@ -126,24 +82,26 @@ def run_demo(object_name: str = "key", participant: int = 3, seed: int = 0, rate
     print(f"handkse demo: {object_name}, participant {participant}, {len(messages)} frames "
           f"({duration:.1f} s at rate {rate:g}); services on {endpoint}; logs in {workdir}")
     options = ZenohOptions(mode="client", connect=(endpoint,), multicast_scouting=False)
-    with ServiceProcesses(endpoint, workdir, rig), Bus(options) as bus:
-        _wait_alive(bus, keys, SERVICES, 60.0)
-        bus.get(keys.reset("kinematics"))  # a fresh demonstration even with an old state file
-        bus.get(keys.reset("tracker"))
-        latest: list[KinematicModel] = []
-        bus.subscribe(keys.kinematics_model,
-                      lambda _k, p: latest.append(KinematicModel.from_msgpack(p)))
-        stop = threading.Event()
-        player = threading.Thread(target=replay, args=(messages, bus.put),
-                                  kwargs={"rate": rate, "stop": stop}, daemon=True)
-        t0 = time.monotonic()
-        player.start()
-        while player.is_alive():
-            player.join(0.5)
-            if latest:
-                print(_progress_line(latest[-1], demo, time.monotonic() - t0), flush=True)
-        _wait_settled(latest)
-        final = KinematicModel.from_msgpack(bus.get(keys.kinematics_model)[0][1])
+    with ProcessGroup(workdir) as group:
+        group.start_pipeline(endpoint, rig, SERVICES)
+        with Bus(options) as bus:
+            _wait_alive(bus, keys, SERVICES, 60.0)
+            bus.get(keys.reset("kinematics"))  # a fresh demonstration even with an old state file
+            bus.get(keys.reset("tracker"))
+            latest: list[KinematicModel] = []
+            bus.subscribe(keys.kinematics_model,
+                          lambda _k, p: latest.append(KinematicModel.from_msgpack(p)))
+            stop = threading.Event()
+            player = threading.Thread(target=replay, args=(messages, bus.put),
+                                      kwargs={"rate": rate, "stop": stop}, daemon=True)
+            t0 = time.monotonic()
+            player.start()
+            while player.is_alive():
+                player.join(0.5)
+                if latest:
+                    print(_progress_line(latest[-1], demo, time.monotonic() - t0), flush=True)
+            _wait_settled(latest)
+            final = KinematicModel.from_msgpack(bus.get(keys.kinematics_model)[0][1])
     error = print_comparison(final, demo)
     if robot:
         from services.robot_bridge.simulation import articulate_demonstration, format_result

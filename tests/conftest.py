@@ -2,9 +2,7 @@
 
 from __future__ import annotations
 
-import os
 import subprocess
-import sys
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -12,57 +10,29 @@ from pathlib import Path
 import pytest
 
 from services.common.bus import Bus, ZenohOptions
-
-REPO = Path(__file__).resolve().parent.parent
-
-
-def handkse_cmd(*args: str) -> list[str]:
-    """Command line running the ``handkse`` CLI with this interpreter."""
-    return [sys.executable, "-m", "services", *args]
+from services.common.processes import REPO, ProcessGroup, child_env, client_args, handkse_cmd
 
 
-def _env() -> dict[str, str]:
-    env = dict(os.environ)
-    env["PYTHONPATH"] = str(REPO) + os.pathsep + env.get("PYTHONPATH", "")
-    env["PYTHONUNBUFFERED"] = "1"
-    for k in ("ZENOH_CONFIG", "ZENOH_MODE", "ZENOH_CONNECT", "ZENOH_LISTEN"):
-        env.pop(k, None)
-    return env
-
-
-class Processes:
-    """Starts CLI subprocesses and kills whatever is left at teardown."""
+class Processes(ProcessGroup):
+    """CLI subprocesses of a test, killed at teardown; ``name`` labels the log file."""
 
     def __init__(self, tmp: Path) -> None:
+        super().__init__(tmp)
         self.tmp = tmp
-        self.procs: list[subprocess.Popen[str]] = []
 
-    def start(self, *args: str, name: str = "proc") -> subprocess.Popen[str]:
-        log = open(self.tmp / f"{name}-{len(self.procs)}.log", "w")  # noqa: SIM115
-        p = subprocess.Popen(handkse_cmd(*args), stdout=log, stderr=subprocess.STDOUT,
-                             text=True, env=_env(), cwd=REPO)
-        p.log_path = log.name  # type: ignore[attr-defined]
-        self.procs.append(p)
+    def start(self, *args: str, name: str = "proc") -> subprocess.Popen[bytes]:  # type: ignore[override]
+        label = f"{name}-{len(self.procs)}"
+        p = super().start(label, *args)
+        p.log_path = self.log_path(label)  # type: ignore[attr-defined]
         return p
 
     def run(self, *args: str, timeout: float = 60.0) -> subprocess.CompletedProcess[str]:
-        return subprocess.run(handkse_cmd(*args), capture_output=True, text=True, env=_env(),
-                              cwd=REPO, timeout=timeout, check=False)
-
-    def stop_all(self) -> None:
-        for p in self.procs:
-            if p.poll() is None:
-                p.terminate()
-        for p in self.procs:
-            try:
-                p.wait(5)
-            except subprocess.TimeoutExpired:
-                p.kill()
-                p.wait(5)
+        return subprocess.run(handkse_cmd(*args), capture_output=True, text=True,
+                              env=child_env(), cwd=REPO, timeout=timeout, check=False)
 
 
 def output_of(p: subprocess.Popen[str]) -> str:
-    return Path(p.log_path).read_text()  # type: ignore[attr-defined]
+    return Path(p.log_path).read_text(errors="replace")  # type: ignore[attr-defined]
 
 
 def wait_until(predicate: Callable[[], bool], timeout: float = 10.0, period: float = 0.02,
@@ -95,7 +65,7 @@ def router(procs: Processes, tmp_path: Path) -> str:
 
 def zenoh_args(endpoint: str) -> list[str]:
     """CLI arguments for a client of the router at ``endpoint``."""
-    return ["-m", "client", "-e", endpoint, "--no-multicast-scouting"]
+    return client_args(endpoint)
 
 
 @pytest.fixture

@@ -11,9 +11,10 @@ import pytest
 
 from services.common.bus import Bus, BusError, NoResponder, QueryAnswer, QueryRejected, QueryTimeout
 from services.common.keys import Keys
+from services.common.processes import child_env
 from services.common.protocol import HandLandmarks, ServiceStats
 from tests.common import samples
-from tests.conftest import REPO, _env, wait_until
+from tests.conftest import REPO, wait_until
 
 KEYS = Keys("t1")
 
@@ -21,7 +22,7 @@ KEYS = Keys("t1")
 def _start_echo(router: str, tmp_path) -> subprocess.Popen[str]:  # type: ignore[no-untyped-def]
     log = open(tmp_path / "echo.log", "w")  # noqa: SIM115
     return subprocess.Popen([sys.executable, "-m", "tests.common.echo_service", router, KEYS.rig],
-                            stdout=log, stderr=subprocess.STDOUT, env=_env(), cwd=REPO, text=True)
+                            stdout=log, stderr=subprocess.STDOUT, env=child_env(), cwd=REPO, text=True)
 
 
 def test_queryable_answers_and_errors(client_bus: Bus) -> None:

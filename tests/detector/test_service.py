@@ -14,9 +14,10 @@ import numpy as np
 
 from services.common.bus import Bus
 from services.common.keys import Keys
+from services.common.processes import child_env
 from services.common.protocol import HandLandmarks
 from services.detector.sources import CapturedFrame, FolderWriter, encode_frame
-from tests.conftest import REPO, Processes, _env, output_of, wait_until, zenoh_args
+from tests.conftest import REPO, Processes, output_of, wait_until, zenoh_args
 from tests.detector.conftest import CATCHER_CROP, HAND_REGIONS, crop, intrinsics_for
 
 KEYS = Keys("det")
@@ -27,7 +28,7 @@ def start_module(procs: Processes, module: str, *args: str, name: str) -> subpro
     """``python -m <module> ARGS`` as a child process that ``procs`` stops at teardown."""
     log = open(procs.tmp / f"{name}-{len(procs.procs)}.log", "w")  # noqa: SIM115
     p = subprocess.Popen([sys.executable, "-m", module, *args], stdout=log,
-                         stderr=subprocess.STDOUT, text=True, env=_env(), cwd=REPO)
+                         stderr=subprocess.STDOUT, text=True, env=child_env(), cwd=REPO)
     p.log_path = log.name  # type: ignore[attr-defined]
     procs.procs.append(p)
     return p
