@@ -140,7 +140,7 @@ class ProcessGroup:
         self.stop_all()
 
 
-STATEFUL = ("kinematics",)
+STATEFUL = ("tracker", "kinematics")
 
 
 def wait_for(predicate: Callable[[], bool], timeout: float, what: str,

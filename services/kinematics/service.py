@@ -12,7 +12,6 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import os
 import threading
 from pathlib import Path
 
@@ -25,12 +24,10 @@ from services.common.protocol import (
     HandBody,
     KinematicModel,
     PrismaticParams,
-    ProtocolError,
     RevoluteParams,
-    pack_document,
-    unpack_document,
 )
 from services.common.service import BusLike, Service, stop_on_signals
+from services.common.state_file import StateFile
 from services.kinematics.config import KinematicsConfig
 from services.kinematics.estimator import KinematicBelief, KinematicEstimator
 
@@ -54,14 +51,6 @@ def model_message(belief: KinematicBelief, seq: int) -> KinematicModel:
         reference_pose=np.asarray(belief.reference_pose, "<f8"), updates=int(belief.updates))
 
 
-def write_atomically(path: Path, data: bytes) -> None:
-    """Replace ``path`` with ``data`` so a reader (or a restart) never sees a partial file."""
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "wb") as f:
-        f.write(data)
-    os.replace(tmp, path)
-
-
 class KinematicsNode:
     """Binds a :class:`KinematicEstimator` to the bus through a :class:`Service`."""
 
@@ -69,7 +58,7 @@ class KinematicsNode:
                  state_file: Path | None = None) -> None:
         self.service = service
         self.config = config
-        self.state_file = state_file
+        self.state_file = StateFile(state_file, SNAPSHOT_VERSION)
         self.estimator = self._restore() or KinematicEstimator(config)
         self._latest = model_message(self.estimator.belief, 0)
         self._lock = threading.Lock()
@@ -79,24 +68,20 @@ class KinematicsNode:
         service.on_reset(self.reset)
 
     def _restore(self) -> KinematicEstimator | None:
-        if self.state_file is None or not self.state_file.exists():
+        doc = self.state_file.load()
+        if doc is None:
             return None
         try:
-            doc = unpack_document(self.state_file.read_bytes())
-            if doc.get("version") != SNAPSHOT_VERSION:
-                raise ValueError(f"snapshot version {doc.get('version')}")
             estimator = KinematicEstimator.from_snapshot(doc["estimator"], self.config)
-        except (ProtocolError, ValueError, KeyError, TypeError) as exc:
-            log.warning("ignoring unreadable state file %s: %s", self.state_file, exc)
+        except (ValueError, KeyError, TypeError) as exc:
+            log.warning("ignoring unusable state file %s: %s", self.state_file.path, exc)
             return None
-        log.info("restored kinematics state from %s (%d updates)", self.state_file,
+        log.info("restored kinematics state from %s (%d updates)", self.state_file.path,
                  estimator.belief.updates)
         return estimator
 
     def _save(self) -> None:
-        if self.state_file is not None:
-            doc = {"version": SNAPSHOT_VERSION, "estimator": self.estimator.to_snapshot()}
-            write_atomically(self.state_file, pack_document(doc))
+        self.state_file.save({"estimator": self.estimator.to_snapshot()})
 
     def on_body(self, body: HandBody) -> None:
         if not body.initialized:

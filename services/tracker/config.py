@@ -125,6 +125,11 @@ class TrackerConfig:
 
     # Re-initialisation: drop the body after this long without a correction.
     reinit_after_s: float = 0.5
+    # Re-acquire a re-initialised hand in the body frame it had before (register the remembered
+    # body model onto the new one), so hand poses stay comparable across the gap and the
+    # kinematic level's displacements T(t) T(t0)^-1 remain valid. Off: every initialisation
+    # defines a new body frame.
+    reacquire_body_frame: bool = True
 
     # Publish covariances scaled by the smoothed a-posteriori variance of unit weight of the body
     # fit (1 when the noise model is right) and by the residual-correlation factor.

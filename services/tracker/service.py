@@ -3,12 +3,19 @@
 Subscribes ``handkse/{rig}/hand/landmarks`` (FIFO: every frame matters to the filters) and
 ``handkse/{rig}/kinematics/model`` (the latest model drives the third motion model, through the
 same prediction function the kinematics library uses), publishes ``handkse/{rig}/hand/body``.
+
+With ``--state-file`` the hand body model (body-frame landmark coordinates) is written atomically
+when a body is initialised and then about once a second, and restored at start: a tracker that is
+killed and restarted re-acquires the hand in the same body frame, so the kinematics service's
+displacements stay valid (``TrackerConfig.reacquire_body_frame``). ``reset`` forgets it.
 """
 
 from __future__ import annotations
 
 import argparse
+import logging
 import threading
+from pathlib import Path
 
 import numpy as np
 
@@ -17,9 +24,15 @@ from services.common.config import section_from_args
 from services.common.keys import Keys
 from services.common.protocol import HandBody, HandLandmarks, KinematicModel, LandmarkStates
 from services.common.service import BusLike, Service, stop_on_signals
+from services.common.state_file import StateFile
 from services.kinematics.prediction import predict_hand_pose
 from services.tracker.config import TrackerConfig
 from services.tracker.tracker import HandBodyEstimate, HandObservation, HandTracker
+
+log = logging.getLogger(__name__)
+
+SNAPSHOT_VERSION = 1
+SAVE_PERIOD_NS = 1_000_000_000  # body model snapshots while tracking, in stamp time
 
 
 def body_message(estimate: HandBodyEstimate, seq: int, frame_id: str | None = None) -> HandBody:
@@ -46,10 +59,14 @@ def observations(message: HandLandmarks) -> list[HandObservation]:
 class TrackerNode:
     """Binds a :class:`HandTracker` to the bus through a :class:`Service`."""
 
-    def __init__(self, service: Service, config: TrackerConfig) -> None:
+    def __init__(self, service: Service, config: TrackerConfig,
+                 state_file: Path | None = None) -> None:
         self.service = service
         self.tracker = HandTracker(config)
         self.model: KinematicModel | None = None
+        self.state_file = StateFile(state_file, SNAPSHOT_VERSION)
+        self._saved_stamp_ns: int | None = None
+        self._restore()
         keys = service.keys
         service.subscribe(keys.hand_landmarks, HandLandmarks, self.on_landmarks)
         service.subscribe(keys.kinematics_model, KinematicModel, self.on_model)
@@ -71,6 +88,7 @@ class TrackerNode:
                 self.service.reject(reason, f"landmarks at {message.stamp_ns} ns")
         if estimate is None:
             return
+        self._maybe_save(estimate)
         keys = self.service.keys
         frame = "world" if message.frame_id == "world" else estimate.frame_id
         self.service.publish(keys.hand_body,
@@ -79,12 +97,50 @@ class TrackerNode:
     def reset(self) -> None:
         self.tracker.reset()
         self.model = None
+        self._saved_stamp_ns = None
+        self.state_file.save({"body": None})
+
+    def _restore(self) -> None:
+        doc = self.state_file.load()
+        body = None if doc is None else doc.get("body")
+        if body is None:
+            return
+        try:
+            ok = self.tracker.remember_body(str(body["frame_id"]), body["points"])
+        except (KeyError, TypeError, ValueError):
+            ok = False
+        if ok:
+            log.info("restored the hand body model from %s", self.state_file.path)
+        else:
+            log.warning("ignoring an unusable body model in %s", self.state_file.path)
+
+    def _maybe_save(self, estimate: HandBodyEstimate) -> None:
+        """Snapshot the body model at a (re)initialisation and then every ``SAVE_PERIOD_NS``."""
+        if self.state_file.path is None:
+            return
+        if not estimate.initialized:
+            self._saved_stamp_ns = None
+            return
+        last = self._saved_stamp_ns
+        if last is not None and 0 <= estimate.stamp_ns - last < SAVE_PERIOD_NS:
+            return
+        remembered = self.tracker.remembered_body()
+        if remembered is not None:
+            self.state_file.save({"body": {"frame_id": remembered[0], "points": remembered[1]}})
+            self._saved_stamp_ns = estimate.stamp_ns
 
 
-def run(bus: BusLike, keys: Keys, config: TrackerConfig, stop: threading.Event) -> None:
+def run(bus: BusLike, keys: Keys, config: TrackerConfig, stop: threading.Event,
+        state_file: Path | None = None) -> None:
     service = Service("tracker", bus, keys)
-    TrackerNode(service, config)
+    TrackerNode(service, config, state_file)
     service.run(stop)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--state-file", type=Path,
+                        help="keep the hand body model here and restore it at start (a restarted "
+                             "tracker continues the same body frame)")
 
 
 def main(args: argparse.Namespace) -> int:
@@ -93,5 +149,5 @@ def main(args: argparse.Namespace) -> int:
     stop_on_signals(stop)
     with Bus(options_from_args(args, section_from_args(args, "zenoh"))) as bus:
         print("tracker ready", flush=True)
-        run(bus, Keys(args.rig), config, stop)
+        run(bus, Keys(args.rig), config, stop, args.state_file)
     return 0

@@ -96,7 +96,9 @@ class HandBodyEstimate:
 
     - ``pose``: ``T_frame_hand`` (4, 4); identity while not ``initialized``. The hand (body)
       frame is fixed at initialisation: origin at the centroid of the RANSAC inlier landmarks,
-      axes parallel to ``frame_id`` (``ransac.py``); a re-initialisation starts a new one.
+      axes parallel to ``frame_id`` (``ransac.py``). A re-initialisation re-acquires that body
+      frame when the remembered body model registers onto the new landmarks
+      (``reacquire_body_frame``; :meth:`HandTracker.reacquire`), else it starts a new one.
     - ``twist``: (6,) left twist ``[v, w]`` (m/s, rad/s) in ``frame_id``:
       ``T(t + dt) ~= Exp(dt twist) T(t)``.
     - ``covariance``: (12, 12) over [pose left perturbation (v, w), twist (v, w)].
@@ -161,7 +163,9 @@ class HandTracker:
     """Landmark KFs + weighted RANSAC initialisation + hand-body EKF for one tracked hand.
 
     ``rejected``: reason -> count of rejected frames/hands/priors; ``skipped``: reason -> count of
-    accepted frames that produced no estimate; ``reinitializations``: bodies dropped.
+    accepted frames that produced no estimate; ``reinitializations``: bodies dropped;
+    ``reacquisitions``: initialisations that continued a remembered body frame (of
+    ``reacquire_attempts``).
     """
 
     def __init__(self, config: TrackerConfig) -> None:
@@ -171,6 +175,8 @@ class HandTracker:
         self.rejected: dict[str, int] = {}
         self.skipped: dict[str, int] = {}
         self.reinitializations = 0
+        self.reacquisitions = 0
+        self.reacquire_attempts = 0
         self._body_mask = body_landmark_mask(config)
         self._P0_rb, self._Q_rb = body_noise_matrices(
             (config.p0_rb_position_m2, config.p0_rb_rotation_rad2,
@@ -193,6 +199,7 @@ class HandTracker:
         self._slot: int | None = None
         self._ekf: HandBodyEkf | None = None
         self._points_body: Array | None = None
+        self._memory: Array | None = None  # the last body model, for re-acquisition
         self._template_count = np.zeros(NUM_LANDMARKS)
         self._candidates = np.full((NUM_LANDMARKS, max(1, self._cfg.template_candidate_frames), 3),
                                    np.nan)
@@ -213,6 +220,26 @@ class HandTracker:
     def body_points(self) -> Array | None:
         """(21, 3) body-frame coordinates fixed at initialisation (NaN: not in the body model)."""
         return None if self._points_body is None else self._points_body.copy()
+
+    def remembered_body(self) -> tuple[str, Array] | None:
+        """(tracking frame id, (21, 3) body model) to persist: the current body model, else the
+        one remembered for re-acquisition; None before any initialisation."""
+        points = self._points_body if self._points_body is not None else self._memory
+        if points is None or self._frame_id is None:
+            return None
+        return self._frame_id, points.copy()
+
+    def remember_body(self, frame_id: str, points_body: Array) -> bool:
+        """Adopt a persisted body model (from :meth:`remembered_body`): the next initialisation
+        re-acquires its body frame. Refused (False) if malformed or in another tracking frame
+        than the one already in use."""
+        points = np.asarray(points_body, dtype=float)
+        if (points.shape != (NUM_LANDMARKS, 3) or frame_id not in ("camera", "world")
+                or (self._frame_id is not None and frame_id != self._frame_id)
+                or int(np.isfinite(points).all(axis=1).sum()) < self._cfg.min_inliers):
+            return False
+        self._memory = points.copy()
+        return True
 
     def step(self, stamp_ns: int, hands: Sequence[HandObservation],
              T_world_camera: np.ndarray | None = None,
@@ -360,6 +387,7 @@ class HandTracker:
     def _maybe_drop_body(self, stamp_ns: int) -> None:
         """Drop the body once it has gone ``reinit_after_s`` without a correction."""
         if (stamp_ns - self._body_stamp_ns) * 1e-9 >= self._cfg.reinit_after_s:
+            self._memory = self._points_body
             self._ekf = None
             self._points_body = None
             self._articulation = np.zeros(NUM_LANDMARKS)
@@ -428,21 +456,54 @@ class HandTracker:
                             np.stack([f.usable for f in frames]),
                             np.array([f.stamp_ns for f in frames], dtype=float) * 1e-9,
                             inliers, result.transform)
-        self._ekf = HandBodyEkf(body.T_frame_body, body.twist, self._P0_rb, self._Q_rb,
+        T_frame_body, points_body = body.T_frame_body, body.points_body
+        if self._memory is not None and cfg.reacquire_body_frame:
+            X = self.reacquire(points_body, frames[-1].variances)
+            if X is not None:  # p_new = X p_old: the remembered frame is T_new X
+                T_frame_body = T_frame_body @ X
+                points_body = (points_body - X[:3, 3]) @ X[:3, :3]
+        self._ekf = HandBodyEkf(T_frame_body, body.twist, self._P0_rb, self._Q_rb,
                                 cfg.nominal_dt_s)
-        self._points_body = body.points_body
+        self._points_body = points_body
+        self._memory = None  # the body model is the memory from now on
         self._template_count = np.where(np.isfinite(body.points_body).all(axis=1),
                                         float(len(frames)), 0.0)
         self._candidates[:] = np.nan
         self._candidate_count[:] = 0
         if cfg.use_uncertainty_models:
-            self._articulation = articulation_variances(
-                body.points_body, cfg.articulation_std_rad)
+            self._articulation = articulation_variances(points_body, cfg.articulation_std_rad)
         self._seed_from_window(frames)
         self._body_stamp_ns = stamp_ns
         self._window.clear()
         status[usable & ~inliers] = STATUS_OUTLIER
         return MOTION_MODELS[0]
+
+    def reacquire(self, points_body: Array, variances: Array) -> Array | None:
+        """The transform X (4x4) with ``points_body ~= X p_old`` for the remembered body model
+        ``p_old``, or None when it does not register.
+
+        A weighted RANSAC (the initialisation's, on the same gate) between the remembered and the
+        new body-frame coordinates of the landmarks both know; a changed grasp moves a few
+        fingers, which become outliers. Needs ``min_inliers`` inliers and at least half of the
+        common landmarks; per-axis ``variances`` (21,) are those of the newest window frame.
+        """
+        memory = self._memory
+        assert memory is not None
+        cfg = self._cfg
+        common = np.isfinite(memory).all(axis=1) & np.isfinite(points_body).all(axis=1)
+        if common.sum() < cfg.min_inliers:
+            return None
+        self.reacquire_attempts += 1
+        var = variances[common]
+        result = rigid_ransac(memory[common], points_body[common], var, var,
+                              iterations=cfg.ransac_iterations,
+                              threshold=cfg.ransac_inlier_mahalanobis,
+                              refinements=cfg.ransac_refinements, rng=self._rng)
+        if (result is None or result.inliers.sum() < cfg.min_inliers
+                or 2 * result.inliers.sum() < common.sum()):
+            return None
+        self.reacquisitions += 1
+        return result.transform
 
     def _seed_from_window(self, frames: list[_WindowFrame]) -> None:
         """Calibrate the new body from its initialisation window, so that its very first

@@ -12,6 +12,9 @@ from services.common.keys import Keys
 from services.common.protocol import HandBody, KinematicModel
 from services.synthetic.generator import generate
 from services.synthetic.replay import landmark_messages
+from services.tracker.config import TrackerConfig
+from services.tracker.service import observations
+from services.tracker.tracker import HandTracker
 from tests.conftest import Processes, output_of, wait_until, zenoh_args
 
 KEYS = Keys("trk")
@@ -71,3 +74,61 @@ def test_model_from_kinematics_reaches_the_tracker(procs: Processes, router: str
     wait_until(lambda: received() == 1, 10, what="model received")
     stats = json.loads(client_bus.get(KEYS.stats("tracker") + "?format=json")[0][1])
     assert stats["rejected"] == {}
+
+
+def _angle_deg(a: np.ndarray, b: np.ndarray) -> float:
+    R = a[:3, :3].T @ b[:3, :3]
+    return float(np.degrees(np.arccos(np.clip(0.5 * (np.trace(R) - 1.0), -1.0, 1.0))))
+
+
+def test_a_restarted_tracker_continues_its_body_frame(procs: Processes, router: str,
+                                                      client_bus: Bus, tmp_path) -> None:  # type: ignore[no-untyped-def]
+    """kill -9 mid-demonstration, restart with the same state file: the new body is re-acquired
+    in the old body frame, so its poses match an uninterrupted run's (the key turns ~70 deg
+    meanwhile, so a fresh centroid frame does not); without the state file they do not."""
+    demo = generate("key", 3, 0)
+    truth = {int(s): T for s, T in zip(demo.stamps_ns, demo.truth.T_camera_hand, strict=True)}
+    frames = landmark_messages(demo)
+    bodies: list[HandBody] = []
+    client_bus.subscribe(KEYS.hand_body, lambda k, p: bodies.append(HandBody.from_msgpack(p)))
+    uninterrupted = HandTracker(TrackerConfig())
+    reference = {}
+    for msg in frames:
+        est = uninterrupted.step(msg.stamp_ns, observations(msg))
+        if est is not None and est.initialized:
+            reference[msg.stamp_ns] = est.pose
+
+    def run_tracker(part: list, state: str | None) -> dict[int, np.ndarray]:  # type: ignore[type-arg]
+        extra = ["--state-file", state] if state else []
+        p = procs.start("tracker", "--rig", KEYS.rig, *zenoh_args(router), *extra,
+                        name="tracker")
+        wait_until(lambda: KEYS.alive("tracker") in client_bus.alive(KEYS.alive_all), 20,
+                   what=f"tracker liveliness; log: {output_of(p)}")
+        bodies.clear()
+        for msg in part:
+            client_bus.put(KEYS.hand_landmarks, msg.to_msgpack())
+            time.sleep(0.002)
+        wait_until(lambda: bool(bodies) and bodies[-1].stamp_ns == part[-1].stamp_ns, 20,
+                   what="hand body of the last frame")
+        p.kill()
+        p.wait(10)
+        wait_until(lambda: KEYS.alive("tracker") not in client_bus.alive(KEYS.alive_all), 20,
+                   what="tracker gone")
+        return {b.stamp_ns: b.pose for b in bodies if b.initialized}
+
+    def offset_deg(poses: dict[int, np.ndarray]) -> float:
+        """Median rotation between these poses' body frame and the uninterrupted run's."""
+        return float(np.median([_angle_deg(np.linalg.inv(truth[s]) @ T,
+                                           np.linalg.inv(truth[s]) @ reference[s])
+                                for s, T in poses.items()]))
+
+    state = str(tmp_path / "tracker.state")
+    first = run_tracker(frames[:60], state)
+    resumed = run_tracker(frames[60:], state)
+    fresh = run_tracker(frames[60:], None)
+    assert len(first) > 40 and len(resumed) > 80 and len(fresh) > 80
+    print(f"body frame vs the uninterrupted run: before the kill {offset_deg(first):.1f} deg, "
+          f"resumed {offset_deg(resumed):.1f} deg, fresh {offset_deg(fresh):.1f} deg")
+    assert offset_deg(first) < 1.0  # the same tracker on the same frames
+    assert offset_deg(resumed) < 10.0
+    assert offset_deg(fresh) > 5.0 * offset_deg(resumed)

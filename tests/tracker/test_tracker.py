@@ -315,6 +315,61 @@ def test_body_is_reinitialised_after_a_long_absence() -> None:
     np.testing.assert_array_equal(waiting.twist, np.zeros(6))
 
 
+def _body_offsets(reacquire: bool, remembered: tuple[str, np.ndarray] | None = None
+                  ) -> tuple[list[np.ndarray], HandTracker]:
+    """Run a wobble with the hand away for 1 s (frames 40-69); per initialised frame the body
+    frame's pose in the true hand frame, ``T_true^-1 T_est``."""
+    rng = np.random.default_rng(6)
+    tracker = HandTracker(TrackerConfig(reacquire_body_frame=reacquire))
+    if remembered is not None:
+        assert tracker.remember_body(*remembered)
+    scenario = hg.Scenario(wobble, 4.0)
+    offsets = []
+    for k, stamp in enumerate(scenario.stamps()):
+        T = scenario.T_frame_hand(hg.Scenario.time_of(stamp))
+        est = tracker.step(stamp, [] if 40 <= k < 70 else [hg.observe(T, rng, NOISE_M)])
+        if est is not None and est.initialized:
+            offsets.append(se3_inverse(T) @ est.pose)
+    return offsets, tracker
+
+
+def _offset_change(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
+    """(m, rad) between two body-frame offsets, the origin's shift and the rotation angle."""
+    return hg.pose_error(a, b)
+
+
+def test_reinitialised_body_keeps_its_body_frame() -> None:
+    """After the hand comes back, the re-acquired body frame sits where the old one did on the
+    hand (to the noise of a fresh initialisation), so downstream displacements stay valid; a
+    new centroid frame (reacquire off) lands elsewhere on the rotated hand."""
+    offsets, tracker = _body_offsets(True)
+    assert tracker.reinitializations == 1 and tracker.reacquisitions == 1
+    before = np.mean([o[:3, 3] for o in offsets[20:36]], axis=0)
+    shift, angle = _offset_change(offsets[30], offsets[-1])
+    print(f"re-acquired: body frame moved {shift * 1e3:.2f} mm, {np.degrees(angle):.2f} deg")
+    assert shift < 0.004 and angle < np.radians(2.0)
+    assert np.linalg.norm(offsets[-1][:3, 3] - before) < 0.004
+
+    fresh, tracker = _body_offsets(False)
+    assert tracker.reacquisitions == 0
+    shift, angle = _offset_change(fresh[30], fresh[-1])
+    print(f"new frame: body frame moved {shift * 1e3:.2f} mm, {np.degrees(angle):.2f} deg")
+    assert angle > np.radians(10.0)
+
+
+def test_a_persisted_body_model_is_reacquired_by_a_new_tracker() -> None:
+    """A restarted tracker given the body model of the previous one continues its body frame."""
+    offsets, tracker = _body_offsets(True)
+    remembered = tracker.remembered_body()
+    assert remembered is not None and remembered[0] == "camera"
+    restarted, tracker2 = _body_offsets(True, remembered)
+    assert tracker2.reacquisitions == 2  # the first initialisation too
+    shift, angle = _offset_change(offsets[-1], restarted[0])  # a single noisy frame
+    assert shift < 0.004 and angle < np.radians(3.0)
+    assert not HandTracker(TrackerConfig()).remember_body("camera", np.zeros((5, 3)))
+    assert not HandTracker(TrackerConfig()).remember_body("moon", remembered[1])
+
+
 # --- motion models -------------------------------------------------------------------------------
 
 def _revolute_run(prior_kind: str, config: TrackerConfig) -> tuple[Counter[str], Counter[str]]:
