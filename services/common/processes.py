@@ -64,11 +64,16 @@ class ProcessGroup:
     def start(self, name: str, *args: str, prefix: Sequence[str] | None = None
               ) -> subprocess.Popen[bytes]:
         """Start ``handkse <args>`` as ``name``; a name already running is an error."""
+        return self.spawn(name, handkse_cmd(*args), prefix)
+
+    def spawn(self, name: str, argv: Sequence[str], prefix: Sequence[str] | None = None
+              ) -> subprocess.Popen[bytes]:
+        """Start any command line as ``name`` (logs, environment and teardown as ``start``)."""
         old = self.procs.get(name)
         if old is not None and old.poll() is None:
             raise RuntimeError(f"process {name!r} is already running (pid {old.pid})")
         log = open(self.log_path(name), "ab")  # noqa: SIM115 - owned by the child
-        cmd = [*(self.prefix if prefix is None else prefix), *handkse_cmd(*args)]
+        cmd = [*(self.prefix if prefix is None else prefix), *argv]
         p = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=child_env(),
                              cwd=REPO)
         log.close()
@@ -116,11 +121,14 @@ class ProcessGroup:
             self.start_service(service, endpoint, rig, state_dir)
 
     def start_service(self, service: str, endpoint: str, rig: str,
-                      state_dir: Path | None = None) -> subprocess.Popen[bytes]:
-        extra: list[str] = []
+                      state_dir: Path | None = None, extra: Sequence[str] = ()
+                      ) -> subprocess.Popen[bytes]:
+        """``handkse <service>`` as a client of ``endpoint``; ``extra`` CLI arguments are
+        appended (e.g. ``--set zenoh.lease_ms=2000``)."""
+        state: list[str] = []
         if service in STATEFUL:
-            extra = ["--state-file", str((state_dir or self.workdir) / f"{service}.state")]
-        return self.start(service, service, *client_args(endpoint, rig), *extra)
+            state = ["--state-file", str((state_dir or self.workdir) / f"{service}.state")]
+        return self.start(service, service, *client_args(endpoint, rig), *state, *extra)
 
     def stop_all(self) -> None:
         for p in self.procs.values():

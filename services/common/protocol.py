@@ -506,22 +506,33 @@ class Hand:
 
 @dataclass(frozen=True, kw_only=True, eq=False)
 class HandLandmarks(Message):
-    """Detected hands of one camera frame (``handkse/{rig}/hand/landmarks``)."""
+    """Detected hands of one camera frame (``handkse/{rig}/hand/landmarks``).
+
+    With a moving camera the points are in "world" and ``T_world_camera`` is the camera pose of
+    the frame (the tracker needs it for the viewing rays of its depth noise model).
+    """
 
     SCHEMA: ClassVar[str] = "handkse.HandLandmarks/1"
     hands: tuple[Hand, ...] = ()
+    T_world_camera: NDArray[np.float64] | None = None
 
     def _fields(self) -> dict[str, Any]:
-        return {"hands": [h.to_dict() for h in self.hands]}
+        out: dict[str, Any] = {"hands": [h.to_dict() for h in self.hands]}
+        if self.T_world_camera is not None:
+            out["T_world_camera"] = self.T_world_camera
+        return out
 
     @classmethod
     def _parse(cls, f: _Fields, envelope: dict[str, Any]) -> HandLandmarks:
         raw = f._get("hands")
         if not isinstance(raw, list) or len(raw) > 2:
             raise ProtocolError(f"{f.path}.hands: expected a list of at most 2 hands")
+        T = f.array("T_world_camera", "<f8", (4, 4), optional=True)
+        if T is not None:
+            _check_pose(T, f"{f.path}.T_world_camera")
         return cls(**envelope,
                    hands=tuple(Hand.parse(_Fields(h, f"{f.path}.hands[{i}]"))
-                               for i, h in enumerate(raw)))
+                               for i, h in enumerate(raw)), T_world_camera=T)
 
 
 # --- HandBody ---

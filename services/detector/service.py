@@ -94,7 +94,8 @@ def landmarks_message(result: FrameResult, frame: CapturedFrame, seq: int) -> Ha
                           visibility=np.clip(np.asarray(h.visibility, "<f4"), 0.0, 1.0),
                           pixels=np.asarray(h.pixels, "<f4")))
     return HandLandmarks(seq=seq, stamp_ns=int(frame.stamp_ns),
-                         frame_id="camera" if T_wc is None else "world", hands=tuple(hands))
+                         frame_id="camera" if T_wc is None else "world", hands=tuple(hands),
+                         T_world_camera=None if T_wc is None else np.asarray(T_wc, "<f8"))
 
 
 class DetectorNode:

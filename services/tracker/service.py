@@ -50,8 +50,13 @@ def body_message(estimate: HandBodyEstimate, seq: int, frame_id: str | None = No
 
 
 def observations(message: HandLandmarks) -> list[HandObservation]:
+    """The tracker's input: camera-frame points (world points are taken back through
+    ``T_world_camera``, which the tracker then applies itself)."""
+    T = message.T_world_camera
+    T_cw = None if T is None or message.frame_id != "world" else np.linalg.inv(T)
     return [HandObservation(handedness=h.handedness, score=float(h.score),
-                            points=np.asarray(h.points, float),
+                            points=(np.asarray(h.points, float) if T_cw is None else
+                                    np.asarray(h.points, float) @ T_cw[:3, :3].T + T_cw[:3, 3]),
                             visibility=np.asarray(h.visibility, float))
             for h in message.hands]
 
@@ -82,6 +87,7 @@ class TrackerNode:
         before = dict(self.tracker.rejected)
         with self.service.latency.measure("step"):
             estimate = self.tracker.step(message.stamp_ns, observations(message),
+                                         T_world_camera=message.T_world_camera,
                                          kinematic_prior=self._prior)
         for reason, n in self.tracker.rejected.items():
             if n > before.get(reason, 0):

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
 from services.common import protocol as p
@@ -76,6 +78,8 @@ def all_messages(seed: int = 0) -> list[p.Message]:
     return [
         rgbd_frame(seed), hand_landmarks(seed), hand_body(seed), kinematic_model(seed),
         robot_state(seed),
+        dataclasses.replace(hand_landmarks(seed), frame_id="world",
+                            T_world_camera=se3_exp(_rng(seed).normal(size=6))),
         p.ArticulateRequest(amount=3.14, duration_s=10.0, model=kinematic_model(seed),
                             dry_run=True),
         p.ArticulateRequest(amount=0.05, duration_s=4.0),

@@ -14,23 +14,21 @@ import numpy as np
 
 from services.common.bus import Bus
 from services.common.keys import Keys
-from services.common.processes import child_env
 from services.common.protocol import HandLandmarks
 from services.detector.sources import CapturedFrame, FolderWriter, encode_frame
-from tests.conftest import REPO, Processes, output_of, wait_until, zenoh_args
+from tests.conftest import Processes, output_of, wait_until, zenoh_args
 from tests.detector.conftest import CATCHER_CROP, HAND_REGIONS, crop, intrinsics_for
 
 KEYS = Keys("det")
 SCALE = 3  # the catcher crop upscaled 3x: a 480x480 frame with a ~80 px hand
 
 
-def start_module(procs: Processes, module: str, *args: str, name: str) -> subprocess.Popen[str]:
+def start_module(procs: Processes, module: str, *args: str, name: str
+                 ) -> subprocess.Popen[bytes]:
     """``python -m <module> ARGS`` as a child process that ``procs`` stops at teardown."""
-    log = open(procs.tmp / f"{name}-{len(procs.procs)}.log", "w")  # noqa: SIM115
-    p = subprocess.Popen([sys.executable, "-m", module, *args], stdout=log,
-                         stderr=subprocess.STDOUT, text=True, env=child_env(), cwd=REPO)
-    p.log_path = log.name  # type: ignore[attr-defined]
-    procs.procs.append(p)
+    label = f"{name}-{len(procs.procs)}"
+    p = procs.spawn(label, [sys.executable, "-m", module, *args])
+    p.log_path = procs.log_path(label)  # type: ignore[attr-defined]
     return p
 
 

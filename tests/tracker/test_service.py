@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import time
 
@@ -10,6 +11,7 @@ import numpy as np
 from services.common.bus import Bus
 from services.common.keys import Keys
 from services.common.protocol import HandBody, KinematicModel
+from services.common.se3 import se3_exp
 from services.synthetic.generator import generate
 from services.synthetic.replay import landmark_messages
 from services.tracker.config import TrackerConfig
@@ -132,3 +134,24 @@ def test_a_restarted_tracker_continues_its_body_frame(procs: Processes, router: 
     assert offset_deg(first) < 1.0  # the same tracker on the same frames
     assert offset_deg(resumed) < 10.0
     assert offset_deg(fresh) > 5.0 * offset_deg(resumed)
+
+
+def test_world_landmarks_with_a_camera_pose_are_tracked_in_the_world_frame() -> None:
+    """A moving camera: the detector publishes world points with ``T_world_camera``; the tracker
+    gets camera-frame points back plus the pose, so its depth noise follows the real viewing
+    rays, and tracks (and publishes) in "world"."""
+    demo = generate("key", 3, 0)
+    frames = landmark_messages(demo)[:30]
+    T_wc = se3_exp(np.array([0.3, -0.2, 1.0, 0.2, 0.5, -0.1]))
+    tracker = HandTracker(TrackerConfig())
+    for msg in frames:
+        moved = dataclasses.replace(msg, frame_id="world", T_world_camera=T_wc, hands=tuple(
+            dataclasses.replace(h, points=(h.points @ T_wc[:3, :3].T + T_wc[:3, 3]).astype("<f4"))
+            for h in msg.hands))
+        back = observations(moved)
+        np.testing.assert_allclose(back[0].points, msg.hands[0].points, atol=1e-5,
+                                   equal_nan=True)
+        est = tracker.step(moved.stamp_ns, back, T_world_camera=moved.T_world_camera)
+    assert est is not None and est.initialized and est.frame_id == "world"
+    static = observations(dataclasses.replace(frames[0], T_world_camera=T_wc))  # camera frame
+    np.testing.assert_array_equal(static[0].points, frames[0].hands[0].points.astype(float))
