@@ -37,6 +37,10 @@ class RobotBridgeConfig:
     min_type_probability: float = 0.8     # P(type) of the model's type must reach this
     max_model_age_s: float = 120.0        # model stamp_ns must be at most this old (wall clock)
     model_query_timeout_s: float = 2.0    # get on the kinematics service when no model is given
+    # When that get fails (service down, link cut), the last model received from the service is
+    # used only if it arrived at most this long ago (about one Zenoh lease); else stale_model.
+    # 0: never fall back.
+    max_cached_model_age_s: float = 2.0
 
     # --- Abort limits (checked every control tick) ---
     force_limit_n: float = 70.0           # |F| at the wrist (paper: 70 N)
@@ -100,7 +104,7 @@ class RobotBridgeConfig:
         for name in positive:
             if not getattr(self, name) > 0.0:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)!r}")
-        non_negative = ("joint7_margin_rad", "joint_limit_margin_rad",
+        non_negative = ("max_cached_model_age_s", "joint7_margin_rad", "joint_limit_margin_rad",
                         "nullspace_stiffness_nm_per_rad", "hold_s", "settle_s",
                         "success_tolerance", "sim_realtime_factor", "grasp_damping_n_s_per_m",
                         "grasp_damping_nm_s_per_rad")

@@ -5,7 +5,9 @@ Reasons are short stable labels (they end up in ``ArticulateResult.reason``):
 =====================  =========================================================================
 ``low_confidence``     the model's type probability is below the configured threshold
 ``unsupported_type``   the model is rigid, disconnected or unknown (nothing to articulate)
-``stale_model``        the model is older than the configured age (or stamped in the future)
+``stale_model``        the model is older than the configured age (or stamped in the future), or
+                       the kinematics service cannot be asked and the last model received from
+                       it is older than ``max_cached_model_age_s`` (see :func:`check_cached_model`)
 ``no_model``           no model was given and none could be obtained from the kinematics service
 ``invalid_request``    amount zero/non-finite, or a duration that is too short
 ``too_fast``           the planned peak Cartesian speed exceeds the configured limit
@@ -111,6 +113,24 @@ def check_model(model: KinematicModel | None, *, min_type_probability: float,
         if age_s < -FUTURE_TOLERANCE_S:
             return Refusal("stale_model",
                            f"model is stamped {-age_s:.1f} s in the future (clock mismatch?)")
+    return None
+
+
+def check_cached_model(received_age_s: float | None, max_cached_age_s: float, why: str
+                       ) -> Refusal | None:
+    """May the bridge fall back to the last model it received, the kinematics service being
+    unreachable (``why`` says how)?
+
+    Only if that model arrived at most ``max_cached_age_s`` seconds ago (``received_age_s``, on
+    the bridge's own monotonic clock; ``None``: never received). Otherwise ``stale_model``, or
+    ``no_model`` when there is none: a robot must not act on an estimate that may have moved on
+    while its source was cut off. The model itself still goes through :func:`check_model`.
+    """
+    if received_age_s is None:
+        return Refusal("no_model", f"{why}; no model was received from it either")
+    if received_age_s > max_cached_age_s:
+        return Refusal("stale_model", f"{why}; the last model was received {received_age_s:.1f} s "
+                                      f"ago (limit {max_cached_age_s:g} s)")
     return None
 
 

@@ -4,9 +4,14 @@
   while idle and while articulating (``mode`` idle / articulating / fault);
 - answers ``handkse/{rig}/robot/articulate`` (``ArticulateRequest`` -> ``ArticulateResult``);
   without a model in the request it queries the kinematics service (``get`` on
-  ``handkse/{rig}/kinematics/model``) and falls back to the last model published there;
+  ``handkse/{rig}/kinematics/model``). When that query fails (the service is down, the link is
+  cut, no answer within ``model_query_timeout_s``) it falls back to the last model received
+  from the service only if that arrived within ``max_cached_model_age_s`` (default 2 s, about
+  one lease); otherwise it refuses with ``stale_model`` (``no_model`` if it never had one), the
+  log saying why (query error, and since when the kinematics liveliness token is gone).
   ``dry_run`` checks and plans without moving; a second request while one runs gets ``busy``;
-- subscribes ``handkse/{rig}/kinematics/model`` (FIFO; the latest is kept).
+- subscribes ``handkse/{rig}/kinematics/model`` (FIFO; the latest is kept with its arrival
+  time) and watches the liveliness token ``handkse/{rig}/alive/kinematics``.
 
 Threads: the bus threads only decode requests and hand them to the single robot thread, which
 owns the backend (one articulation at a time) and publishes the state. The MuJoCo backend is
@@ -40,6 +45,7 @@ from services.common.service import BusLike, Service, stop_on_signals
 from services.robot_bridge.backend import BackendState, RobotBackend, make_backend
 from services.robot_bridge.config import RobotBridgeConfig, config_from_args
 from services.robot_bridge.executor import Bridge
+from services.robot_bridge.safety import Refusal, check_cached_model
 
 log = logging.getLogger(__name__)
 
@@ -56,17 +62,26 @@ class _Job:
 
 
 class RobotBridgeNode:
-    """Binds a :class:`Bridge` on one backend to the bus through a :class:`Service`."""
+    """Binds a :class:`Bridge` on one backend to the bus through a :class:`Service`.
+
+    ``clock`` (monotonic seconds) times the age of received models and of the kinematics
+    liveliness state; tests pass a fake one.
+    """
 
     def __init__(self, service: Service, backend: RobotBackend, config: RobotBridgeConfig,
-                 fetch_model: ModelFetcher | None = None) -> None:
+                 fetch_model: ModelFetcher | None = None,
+                 clock: Callable[[], float] = time.monotonic) -> None:
         self.service = service
         self.backend = backend
         self.config = config
         self.bridge = Bridge(backend, config)
         self.fetch_model = fetch_model
+        self.clock = clock
         self.mode = "idle"
         self._latest: KinematicModel | None = None
+        self._latest_at = 0.0                       # clock() when _latest arrived
+        self._kinematics_alive: bool | None = None  # None: no liveliness news yet
+        self._kinematics_alive_at = clock()         # clock() of the last liveliness change
         self._lock = threading.Lock()
         self._jobs: queue.Queue[_Job] = queue.Queue()
         self._busy = threading.Event()
@@ -75,12 +90,29 @@ class RobotBridgeNode:
         keys = service.keys
         service.subscribe(keys.kinematics_model, KinematicModel, self.on_model)
         service.bus.declare_queryable(keys.robot_articulate, self.answer_articulate)
+        # The real Bus watches liveliness; a minimal BusLike fake may not (state stays unknown).
+        watch = getattr(service.bus, "watch_liveliness", None)
+        if watch is not None:
+            watch(keys.alive("kinematics"), self.on_kinematics_liveliness)
 
     # --- bus side ---
 
     def on_model(self, model: KinematicModel) -> None:
+        self._remember(model)
+
+    def _remember(self, model: KinematicModel) -> None:
         with self._lock:
             self._latest = model
+            self._latest_at = self.clock()
+
+    def on_kinematics_liveliness(self, _key: str, alive: bool) -> None:
+        """The kinematics service's token appeared (``alive``) or vanished (crash, lease)."""
+        with self._lock:
+            if alive != self._kinematics_alive:
+                self._kinematics_alive = alive
+                self._kinematics_alive_at = self.clock()
+        if not alive:
+            log.warning("kinematics service is not alive (liveliness token gone)")
 
     def answer_articulate(self, request: QueryRequest) -> QueryAnswer:
         """Runs on a bus thread: decode, queue for the robot thread, wait for its result."""
@@ -128,6 +160,8 @@ class RobotBridgeNode:
 
     def _execute(self, request: ArticulateRequest, stop: threading.Event) -> ArticulateResult:
         model = request.model or self._model_from_service()
+        if isinstance(model, Refusal):
+            return _refusal(model.reason, model.detail)
         self._pace = None
         result = self.bridge.articulate(request, model, now_ns=time.time_ns(),
                                         on_tick=self._on_tick, cancel=stop)
@@ -137,17 +171,36 @@ class RobotBridgeNode:
                  result.mean_force_n)
         return result
 
-    def _model_from_service(self) -> KinematicModel | None:
-        """The kinematics service's current model, else the last one published."""
+    def _model_from_service(self) -> KinematicModel | Refusal:
+        """The kinematics service's current model; if it cannot be asked, the last model
+        received from it when that is recent enough (``max_cached_model_age_s``), else a
+        ``stale_model``/``no_model`` refusal saying why."""
+        why = "no kinematics query is configured"
         if self.fetch_model is not None:
             try:
                 model = self.fetch_model()
+            except BusError as exc:
+                why = f"kinematics service unreachable ({exc})"
+            except ProtocolError as exc:
+                why = f"the kinematics service sent an invalid model ({exc})"
+            else:
                 if model is not None:
+                    self._remember(model)
                     return model
-            except (BusError, ProtocolError) as exc:
-                log.warning("could not query the kinematic model: %s", exc)
+                why = "the kinematics service answered without a model"
+        now = self.clock()
         with self._lock:
-            return self._latest
+            latest, latest_at = self._latest, self._latest_at
+            alive, alive_at = self._kinematics_alive, self._kinematics_alive_at
+        if alive is False:
+            why += f"; its liveliness token is gone since {now - alive_at:.1f} s"
+        age = None if latest is None else now - latest_at
+        refusal = check_cached_model(age, self.config.max_cached_model_age_s, why)
+        if refusal is not None:
+            return refusal
+        assert latest is not None
+        log.warning("%s; using the last model received %.1f s ago", why, age)
+        return latest
 
     def _on_tick(self, state: BackendState, moving: bool) -> None:
         """Per control tick: publish at the state rate; pace a simulation to real time."""
