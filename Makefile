@@ -23,7 +23,13 @@ demo: install
 lint: install
 	$(BIN)/ruff check --no-cache services tests bench
 
+# As root on a machine without them (a fresh Debian CI runner), install the system tools the
+# deployment tests use: ip (network namespaces) and openssl (TLS certificates). Otherwise those
+# tests skip with the reason.
 test: install lint
+	@if [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null && \
+	    { ! command -v ip >/dev/null || ! command -v openssl >/dev/null; }; then \
+	  apt-get update -qq && apt-get install -y -qq --no-install-recommends iproute2 openssl; fi
 	$(BIN)/python -m pytest -q
 
 bench: install
