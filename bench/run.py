@@ -5,7 +5,7 @@ from __future__ import annotations
 import importlib
 import sys
 
-BENCHMARKS = ("protocol", "tracker", "kinematics", "detector", "robot")
+BENCHMARKS = ("protocol", "tracker", "kinematics", "detector", "robot", "load", "faults")
 
 
 def run(name: str) -> None:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -36,12 +37,65 @@ def render(results: Path = RESULTS) -> str:
                   f"Machine: {m.get('cpu')}, {m.get('cores')} cores, {m.get('memory_gib')} GiB, "
                   f"{m.get('os')}, Python {m.get('python')}, commit {m.get('commit')}, "
                   f"{m.get('date')}, load average {m.get('load_avg_1_5_15')} at the start.",
-                  "", "| metric | value |", "| --- | --- |"]
+                  ""]
+        renderer = RENDERERS.get(str(doc.get("benchmark")))
+        if renderer is not None:
+            lines += renderer(doc.get("result", {}))
+            continue
+        lines += ["| metric | value |", "| --- | --- |"]
         rows: list[tuple[str, str]] = []
         _flatten("", doc.get("result", {}), rows)
         lines += [f"| {k} | {v} |" for k, v in rows]
         lines.append("")
     return "\n".join(lines)
+
+
+def _ms(p: dict[str, Any] | None) -> str:
+    return "-" if not p else f"{p['p50']:.1f} / {p['p99']:.1f} / {p['max']:.0f}"
+
+
+def _render_load(result: dict[str, Any]) -> list[str]:
+    """Tables for ``bench/load.py``: one row per scenario (the details stay in load.json)."""
+    scenarios: dict[str, Any] = result.get("scenarios", {})
+    lines = ["| scenario | landmarks sent | dropped | frames without a body | camera->model [ms] "
+             "p50 / p99 / max | camera->hand body [ms] | one router hop [ms] | goal met |",
+             "| --- | ---: | ---: | ---: | ---: | ---: | ---: | --- |"]
+    for name, sc in scenarios.items():
+        lat = sc.get("latency_ms", {})
+        met = "yes" if all(sc.get("goal", {}).values()) else "no: " + ", ".join(
+            k for k, v in sc.get("goal", {}).items() if not v)
+        lines.append(f"| {name} | {sc.get('landmarks_sent')} | {sc.get('dropped')} | "
+                     f"{sc.get('frames_without_body', '-')} | "
+                     f"{_ms(lat.get('camera_to_model'))} | {_ms(lat.get('camera_to_hand_body'))} | "
+                     f"{_ms(lat.get('camera_to_landmarks_one_hop'))} | {met} |")
+    lines += ["", "CPU in percent of one core over each run, and the services' own per-stage "
+              "latency (p50 / p99 ms of their last 2000 steps, from `handkse stats`):", "",
+              "| scenario | CPU % | CPU ms per frame | tracker step [ms] | kinematics update [ms] | "
+              "load avg before -> after |",
+              "| --- | --- | --- | --- | --- | --- |"]
+    for name, sc in scenarios.items():
+        cpu = ", ".join(f"{k} {v:g}" for k, v in sc.get("cpu_percent_of_one_core", {}).items())
+        if "cpu_total_percent" in sc:
+            cpu += f" (total {sc['cpu_total_percent']:g} of {sc.get('cpu_available_percent')})"
+        stages: dict[str, list[str]] = {"tracker": [], "kinematics": []}
+        for rig, r in sc.get("per_rig", {}).items():
+            for service, stage in (("tracker", "step"), ("kinematics", "update")):
+                p = r.get("service_stats", {}).get(service, {}).get("latency_ms", {}).get(stage)
+                if p:
+                    stages[service].append(f"{rig}: {p['p50']:.2f} / {p['p99']:.1f}")
+        load = sc.get("load_avg_1_5_15", {})
+        per_frame = ", ".join(f"{k} {v:g}" for k, v in sc.get("cpu_ms_per_frame", {}).items())
+        lines.append(f"| {name} | {cpu} | {per_frame or '-'} | {'; '.join(stages['tracker'])} | "
+                     f"{'; '.join(stages['kinematics'])} | {load.get('before')} -> "
+                     f"{load.get('after')} |")
+    lines += ["", f"Goal: {result.get('goal')}. Method: {result.get('method')}."]
+    if result.get("findings"):
+        lines += ["", f"Findings: {result['findings']}"]
+    lines.append("")
+    return lines
+
+
+RENDERERS: dict[str, Callable[[dict[str, Any]], list[str]]] = {"load": _render_load}
 
 
 def main() -> None:

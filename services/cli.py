@@ -81,7 +81,10 @@ def cmd_router(args: argparse.Namespace) -> int:
     with Bus(ZenohOptions(**{**options.__dict__, "mode": "router"})) as bus:
         log.info("router %s listening on %s", bus.zid, list(options.listen) or "defaults")
         print("router ready", flush=True)
-        stop.wait()
+        # wait with a timeout: a SIGTERM delivered to one of zenoh's threads sets ``stop`` but
+        # does not wake a main thread blocked without one
+        while not stop.wait(0.2):
+            pass
     return 0
 
 

@@ -390,7 +390,8 @@ def _parameters(params: Any) -> dict[str, str]:
 def run_router(options: ZenohOptions, stop: threading.Event) -> None:
     """Run a Zenoh router in this process until ``stop`` is set (tests, small setups)."""
     with Bus(replace(options, mode="router")):
-        stop.wait()
+        while not stop.wait(0.2):  # a timeout, so that a signal handler setting ``stop`` wakes it
+            pass
 
 
 def split_endpoints(values: Sequence[str] | None) -> tuple[str, ...]:

@@ -248,7 +248,9 @@ class _Fields:
               optional: bool = False) -> NDArray[Any] | None:
         v = self._get(key, optional)
         if v is None:
-            return None
+            if optional:
+                return None
+            raise ProtocolError(f"{self.path}.{key}: expected an array map, got nil")
         path = f"{self.path}.{key}"
         # Fast path: the expected dtype and shape, checked before any general parsing.
         if (isinstance(v, dict) and v.get("dtype") == dtype and v.get("shape") == list(shape)

@@ -66,6 +66,10 @@ class McapRecorder:
         log_time = time.time_ns() if log_time_ns is None else log_time_ns
         schema, stamp = peek_envelope(payload)
         schema = schema or "unknown"
+        if stamp is None or not 0 <= stamp < 2**64:
+            # MCAP times are uint64: a stamp outside that range (bad input) must not reach the
+            # writer, which would fail half-way through the record and corrupt the chunk
+            stamp = log_time
         with self._lock:
             if self._closed:
                 return
@@ -79,8 +83,7 @@ class McapRecorder:
             seq = self._sequence.get(key, 0)
             self._sequence[key] = seq + 1
             self._writer.add_message(channel_id=self._channels[key], log_time=log_time,
-                                     data=payload, publish_time=stamp if stamp is not None
-                                     else log_time, sequence=seq)
+                                     data=payload, publish_time=stamp, sequence=seq)
             self.count += 1
 
     def close(self) -> None:

@@ -46,14 +46,19 @@ class BusLike(Protocol):
 
 
 class LatencyLog:
-    """Recent latencies of named stages (bounded), summarised as p50/p99 in milliseconds."""
+    """Recent latencies of named stages (bounded), summarised as p50/p99 in milliseconds.
+
+    Thread-safe: the service loop adds while the ``stats`` queryable summarises on a bus thread.
+    """
 
     def __init__(self, size: int = 2000) -> None:
         self._samples: dict[str, deque[float]] = {}
         self._size = size
+        self._lock = threading.Lock()
 
     def add(self, stage: str, seconds: float) -> None:
-        self._samples.setdefault(stage, deque(maxlen=self._size)).append(seconds * 1e3)
+        with self._lock:
+            self._samples.setdefault(stage, deque(maxlen=self._size)).append(seconds * 1e3)
 
     @contextlib.contextmanager
     def measure(self, stage: str) -> Iterator[None]:
@@ -64,10 +69,12 @@ class LatencyLog:
             self.add(stage, time.perf_counter() - t0)
 
     def summary(self) -> dict[str, dict[str, float]]:
+        with self._lock:  # a copy, so that a stage added meanwhile cannot break the iteration
+            snapshot = {stage: np.array(samples, float) for stage, samples in self._samples.items()}
         out = {}
-        for stage, samples in self._samples.items():
-            if samples:
-                p50, p99 = np.percentile(np.fromiter(samples, float), [50, 99])
+        for stage, samples in snapshot.items():
+            if samples.size:
+                p50, p99 = np.percentile(samples, [50, 99])
                 out[stage] = {"p50": float(p50), "p99": float(p99)}
         return out
 
