@@ -5,7 +5,8 @@ from __future__ import annotations
 import importlib
 import sys
 
-BENCHMARKS = ("protocol", "tracker", "kinematics", "detector", "robot", "load", "faults")
+BENCHMARKS = ("protocol", "tracker", "kinematics", "detector", "robot", "load", "faults",
+              "multihost")
 
 
 def run(name: str) -> None:

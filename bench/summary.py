@@ -36,7 +36,8 @@ def render(results: Path = RESULTS) -> str:
         lines += [f"## {doc.get('benchmark', path.stem)}", "",
                   f"Machine: {m.get('cpu')}, {m.get('cores')} cores, {m.get('memory_gib')} GiB, "
                   f"{m.get('os')}, Python {m.get('python')}, commit {m.get('commit')}, "
-                  f"{m.get('date')}, load average {m.get('load_avg_1_5_15')} at the start.",
+                  f"{m.get('date')}, load average {m.get('load_avg_1_5_15')} (1/5/15 min) "
+                  "when the results were written.",
                   ""]
         renderer = RENDERERS.get(str(doc.get("benchmark")))
         if renderer is not None:

@@ -3,8 +3,8 @@
 Subscribes ``handkse/{rig}/hand/body``, publishes ``handkse/{rig}/kinematics/model`` after every
 update, answers ``get`` on the same key (msgpack, or JSON with ``?format=json``), and restarts
 the demonstration on ``reset``. After every update the estimator's state is written atomically
-(temporary file + rename) to the state file and restored at start, so a killed and restarted
-service continues the demonstration where it was.
+(temporary file + rename, by a writer thread off the update path) to the state file and restored
+at start, so a killed and restarted service continues the demonstration where it was.
 """
 
 from __future__ import annotations
@@ -81,7 +81,7 @@ class KinematicsNode:
         return estimator
 
     def _save(self) -> None:
-        self.state_file.save({"estimator": self.estimator.to_snapshot()})
+        self.state_file.save_later({"estimator": self.estimator.to_snapshot()})
 
     def on_body(self, body: HandBody) -> None:
         if not body.initialized:
@@ -128,8 +128,9 @@ class KinematicsNode:
 def run(bus: BusLike, keys: Keys, config: KinematicsConfig, stop: threading.Event,
         state_file: Path | None = None) -> None:
     service = Service("kinematics", bus, keys)
-    KinematicsNode(service, config, state_file)
+    node = KinematicsNode(service, config, state_file)
     service.run(stop)
+    node.state_file.flush()
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -132,15 +132,17 @@ class TrackerNode:
             return
         remembered = self.tracker.remembered_body()
         if remembered is not None:
-            self.state_file.save({"body": {"frame_id": remembered[0], "points": remembered[1]}})
+            self.state_file.save_later({"body": {"frame_id": remembered[0],
+                                                 "points": remembered[1]}})
             self._saved_stamp_ns = estimate.stamp_ns
 
 
 def run(bus: BusLike, keys: Keys, config: TrackerConfig, stop: threading.Event,
         state_file: Path | None = None) -> None:
     service = Service("tracker", bus, keys)
-    TrackerNode(service, config, state_file)
+    node = TrackerNode(service, config, state_file)
     service.run(stop)
+    node.state_file.flush()
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
