@@ -116,14 +116,15 @@ class RobotBridgeNode:
 
     def answer_articulate(self, request: QueryRequest) -> QueryAnswer:
         """Runs on a bus thread: decode, queue for the robot thread, wait for its result."""
+        self.service.received += 1
         if request.payload is None:
+            self.service.reject("missing_payload", "robot/articulate query without a payload")
             raise QueryRejected("robot/articulate needs an ArticulateRequest payload")
         try:
             req = ArticulateRequest.from_msgpack(request.payload)
         except ProtocolError as exc:
             self.service.reject(exc.reason, str(exc))
             raise QueryRejected(f"bad ArticulateRequest: {exc}") from exc
-        self.service.received += 1
         if self._busy.is_set():
             return QueryAnswer(_refusal("busy").to_msgpack())
         self._busy.set()
