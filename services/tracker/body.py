@@ -72,14 +72,13 @@ import numpy as np
 from numpy.typing import NDArray
 
 from services.common.se3 import (
-    se3_adjoint,
-    se3_exp,
-    se3_inverse,
-    se3_left_jacobian,
-    se3_log,
-    skew,
+    se3_adjoint_fast,
+    se3_exp_fast,
+    se3_inverse_fast,
+    se3_left_jacobian_fast,
+    se3_log_fast,
 )
-from services.tracker.landmarks import inv_sym3
+from services.tracker.landmarks import adjugate_sym3, inv_sym3
 
 Array = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
@@ -89,6 +88,14 @@ _LOG_2PI = math.log(2.0 * math.pi)
 _I3 = np.eye(3)
 _I6 = np.eye(6)
 _I12 = np.eye(12)
+# [v]x = (v @ _SKEW).reshape(3, 3); measurement Jacobian [I3, -[q]x] = q @ _H_Q + _H_I (flattened)
+_SKEW = np.zeros((3, 9))
+_SKEW[2, 1] = _SKEW[1, 6] = _SKEW[0, 5] = -1.0  # rows: v0, v1, v2; columns: row-major entries
+_SKEW[1, 2] = _SKEW[2, 3] = _SKEW[0, 7] = 1.0
+_H_Q = np.zeros((3, 18))
+_H_Q[:, [3, 4, 5, 9, 10, 11, 15, 16, 17]] = -_SKEW
+_H_I = np.zeros(18)
+_H_I[[0, 7, 14]] = 1.0
 
 
 @dataclass(frozen=True, eq=False)
@@ -105,27 +112,19 @@ class Prediction:
 
 def skew_batch(v: Array) -> Array:
     """``[v]x`` for a stack of 3-vectors (..., 3) -> (..., 3, 3)."""
-    out = np.zeros((*v.shape[:-1], 3, 3))
-    out[..., 0, 1] = -v[..., 2]
-    out[..., 0, 2] = v[..., 1]
-    out[..., 1, 0] = v[..., 2]
-    out[..., 1, 2] = -v[..., 0]
-    out[..., 2, 0] = -v[..., 1]
-    out[..., 2, 1] = v[..., 0]
+    out: Array = (v @ _SKEW).reshape(*v.shape[:-1], 3, 3)
     return out
 
 
 def measurement_jacobians(points_frame: Array) -> Array:
     """Pose part of ``H_i = d(T p_i)/d delta = [I3, -[T p_i]x]``: (..., 3, 6) for (..., 3) points."""
-    H = np.empty((*points_frame.shape[:-1], 3, 6))
-    H[..., :3] = _I3
-    H[..., 3:] = -skew_batch(points_frame)
+    H: Array = (points_frame @ _H_Q + _H_I).reshape(*points_frame.shape[:-1], 3, 6)
     return H
 
 
 def predicted_points(T: Array, points_body: Array) -> Array:
     """``T p_i`` for poses (..., 4, 4) and body points (n, 3) -> (..., n, 3)."""
-    return points_body @ np.swapaxes(T[..., :3, :3], -1, -2) + T[..., None, :3, 3]
+    return points_body @ T[..., :3, :3].swapaxes(-1, -2) + T[..., None, :3, 3]
 
 
 def as_covariances(r: Array) -> Array:
@@ -143,25 +142,26 @@ def information_sums(q: Array, y: Array, W: Array) -> tuple[Array, Array, Array]
 
     ``q`` (m, n, 3) predicted landmarks (``H_i = [I, -[q_i]x]``), ``y`` (m, n, 3) innovations,
     ``W`` the inverse measurement covariances ``R_i^-1``: (n, 3, 3), or (n,) inverse variances
-    of isotropic ``R_i = r_i I3`` (0 = not used). With ``Q_i = [q_i]x``:
-    ``H'WH = [[W, -W Q], [Q W, -Q W Q]]`` and ``H'W y = [W y, q x (W y)]``.
+    of isotropic ``R_i = r_i I3`` (0 = not used). The (n, 3, 3) case stacks the ``H_i`` into a
+    (3n, 6) ``H`` and the ``W_i H_i`` alike, so each sum is one matrix product
+    (:func:`information_sums_from_jacobians`).
     """
     W = np.asarray(W, dtype=float)
     if W.ndim == 1:
         return _information_sums_isotropic(q, y, W)
-    m = q.shape[0]
-    Qx = skew_batch(q)  # (m, n, 3, 3)
-    WQ = W[None] @ Qx
-    Wy = np.einsum("nij,mnj->mni", W, y)
-    A = np.empty((m, 6, 6))
-    A[:, :3, :3] = W.sum(axis=0)
-    A[:, :3, 3:] = -WQ.sum(axis=1)
-    A[:, 3:, :3] = np.swapaxes(A[:, :3, 3:], 1, 2)
-    A[:, 3:, 3:] = -(Qx @ WQ).sum(axis=1)
-    b = np.empty((m, 6))
-    b[:, :3] = Wy.sum(axis=1)
-    b[:, 3:] = np.einsum("mnij,mnj->mi", Qx, Wy)  # sum q x (W y)
-    c = np.sum(y * Wy, axis=(1, 2))
+    return information_sums_from_jacobians(measurement_jacobians(q), y, W)
+
+
+def information_sums_from_jacobians(H: Array, y: Array, W: Array) -> tuple[Array, Array, Array]:
+    """:func:`information_sums` from the measurement Jacobians ``H`` (m, n, 3, 6)
+    (:func:`measurement_jacobians` of the predicted landmarks), ``y`` (m, n, 3), ``W`` (n, 3, 3)."""
+    m, k = H.shape[0], 3 * H.shape[1]
+    Hs = H.reshape(m, k, 6)
+    WH = (W @ H).reshape(m, k, 6)  # stacked W_i H_i
+    Wy = (W @ y[..., None]).reshape(m, 1, k)  # stacked (W_i y_i)'
+    A: Array = Hs.transpose(0, 2, 1) @ WH  # sum H_i' W_i H_i
+    b: Array = (Wy @ Hs)[:, 0]  # sum (H_i' W_i y_i)'
+    c: Array = (Wy @ y.reshape(m, k, 1))[:, 0, 0]  # sum y_i' W_i y_i
     return A, b, c
 
 
@@ -199,7 +199,7 @@ def log_likelihoods(P_pose: Array, A: Array, b: Array, c: Array, logdet_R: float
     """
     I_AP = _I6 + A @ P_pose
     u = np.linalg.solve(I_AP, b[:, :, None])[:, :, 0]  # X b = H' S^-1 y
-    maha = c - np.sum(b * (P_pose @ u[:, :, None])[:, :, 0], axis=1)
+    maha = c - (b * (P_pose @ u[:, :, None])[:, :, 0]).sum(axis=1)
     logdet_S = logdet_R + np.linalg.slogdet(I_AP)[1]
     ll: Array = -0.5 * (maha + logdet_S + 3 * n * _LOG_2PI)
     return ll
@@ -208,36 +208,35 @@ def log_likelihoods(P_pose: Array, A: Array, b: Array, c: Array, logdet_R: float
 def mahalanobis_sq(S: Array, v: Array) -> tuple[Array, Array]:
     """``(v' S^-1 v, det S)`` for stacks of symmetric 3x3 ``S`` (..., 3, 3), ``v`` (..., 3).
 
-    Cofactor formula; only the upper triangle of ``S`` is read.
+    Cofactor formula (:func:`~services.tracker.landmarks.adjugate_sym3`): ``v' adj(S) v / det S``;
+    only the upper triangle of ``S`` is read.
     """
-    a, b, c = S[..., 0, 0], S[..., 0, 1], S[..., 0, 2]
-    d, e, f = S[..., 1, 1], S[..., 1, 2], S[..., 2, 2]
-    x0, x1, x2 = v[..., 0], v[..., 1], v[..., 2]
-    c00 = d * f - e * e
-    c01 = c * e - b * f
-    c02 = b * e - c * d
-    det = a * c00 + b * c01 + c * c02
-    num = (c00 * x0 * x0 + (a * f - c * c) * x1 * x1 + (a * d - b * b) * x2 * x2
-           + 2.0 * (c01 * x0 * x1 + c02 * x0 * x2 + (b * c - a * e) * x1 * x2))
-    return num / det, det
+    adj, det = adjugate_sym3(S)
+    num = np.einsum("...i,...ij,...j->...", v, adj, v)
+    out: Array = num / det
+    return out, det
 
 
-def prior_gate_passes(q: Array, y: Array, P_pose: Array, r: Array, threshold: float
-                      ) -> BoolArray:
+def prior_gate_passes(q: Array, y: Array, P_pose: Array, r: Array, threshold: float,
+                      W: Array | None = None) -> BoolArray:
     """``sqrt(y_i' (H_i P H_i' + R_i)^-1 y_i) < threshold`` (m, n) for each hypothesis.
 
     ``q``, ``y`` (m, n, 3) predicted landmarks and innovations, ``P_pose`` (m, 6, 6), ``r`` the
-    measurement covariances (n, 3, 3) or isotropic variances (n,). ``S_i >= R_i``, so
-    ``y_i' R_i^-1 y_i < threshold^2`` already passes; the exact distance is computed only for
-    the landmarks that fail this bound (usually none).
+    measurement covariances (n, 3, 3) or isotropic variances (n,), ``W`` their inverses
+    (n, 3, 3) if the caller has them. ``S_i >= R_i``, so ``y_i' R_i^-1 y_i < threshold^2``
+    already passes; the exact distance is computed only for the landmarks that fail this bound
+    (usually none).
     """
     R = as_covariances(r)
-    d2_R, _ = mahalanobis_sq(R[None], y)
+    if W is None:
+        d2_R, _ = mahalanobis_sq(R[None], y)
+    else:
+        d2_R = np.einsum("mni,nij,mnj->mn", y, W, y)
     ok: BoolArray = d2_R < threshold * threshold
     if not ok.all():
         mi, ni = np.nonzero(~ok)
         H = measurement_jacobians(q[mi, ni])
-        S = H @ P_pose[mi] @ np.swapaxes(H, -1, -2) + R[ni]
+        S = H @ P_pose[mi] @ H.swapaxes(-1, -2) + R[ni]
         d2, _ = mahalanobis_sq(S, y[mi, ni])
         ok[mi, ni] = d2 < threshold * threshold
     return ok
@@ -254,12 +253,18 @@ def posterior_residuals(q: Array, y: Array, r: Array, P_pose: Array, A: Array, b
     in ``A``, ``b``), so no per-landmark refit is needed. ``q``, ``y`` (n, 3) predicted landmarks
     and innovations, ``r`` covariances (n, 3, 3) or isotropic variances (n,).
     """
-    sol = np.linalg.solve(_I6 + A @ P_pose, np.column_stack([b, A]))
-    delta = P_pose @ sol[:, 0]  # P X b
-    Sigma = P_pose - P_pose @ sol[:, 1:] @ P_pose  # P - P X A P
-    e = y - (delta[:3] + q @ skew(delta[3:]).T)  # y - H delta, H delta = rho + w x q
-    H = measurement_jacobians(q)
-    C = as_covariances(r) - H @ Sigma @ np.swapaxes(H, -1, -2)
+    return _posterior_residuals(measurement_jacobians(q), y, r, P_pose, A, b)
+
+
+def _posterior_residuals(H: Array, y: Array, r: Array, P_pose: Array, A: Array, b: Array
+                         ) -> tuple[Array, Array]:
+    """:func:`posterior_residuals` from the measurement Jacobians ``H`` (n, 3, 6)."""
+    sol = np.linalg.solve(_I6 + A @ P_pose, np.concatenate((b[:, None], A), axis=1))
+    PX = P_pose @ sol
+    delta = PX[:, 0]  # P X b
+    Sigma = P_pose - PX[:, 1:] @ P_pose  # P - P X A P
+    e = y - H @ delta  # y - H delta
+    C = as_covariances(r) - H @ Sigma @ H.swapaxes(-1, -2)
     return e, C
 
 
@@ -268,7 +273,13 @@ def posterior_residual_passes(q: Array, y: Array, r: Array, P_pose: Array, A: Ar
     """Leave-one-out gate (n,): is each landmark within ``threshold`` of its prediction from the
     prior and all *other* landmarks? (:func:`posterior_residuals`.) A landmark that alone pins
     part of the pose (``C_i`` singular) passes: there is nothing to compare it with."""
-    e, C = posterior_residuals(q, y, r, P_pose, A, b)
+    return _posterior_residual_passes(measurement_jacobians(q), y, r, P_pose, A, b, threshold)
+
+
+def _posterior_residual_passes(H: Array, y: Array, r: Array, P_pose: Array, A: Array, b: Array,
+                               threshold: float) -> BoolArray:
+    """:func:`posterior_residual_passes` from the measurement Jacobians ``H`` (n, 3, 6)."""
+    e, C = _posterior_residuals(H, y, r, P_pose, A, b)
     d2, det = mahalanobis_sq(C, e)
     ok: BoolArray = (det <= 0.0) | (d2 < threshold * threshold)
     return ok
@@ -301,12 +312,12 @@ def correction(P: Array, A: Array, b: Array) -> tuple[Array, Array]:
     from its information sums ``A = sum H_i' R_i^-1 H_i`` (6, 6), ``b = sum H_i' R_i^-1 y_i`` (6,)
     over the pose columns (the twist columns of H are 0); Joseph form (module docstring)."""
     # X = (I + A P)^-1:  H' S^-1 y = X b,  H' S^-1 H = X A.
-    sol = np.linalg.solve(_I6 + A @ P[:6, :6], np.column_stack([b, A, _I6]))
+    sol = np.linalg.solve(_I6 + A @ P[:6, :6], np.concatenate((b[:, None], A, _I6), axis=1))
     u, G, X = sol[:, 0], sol[:, 1:7], sol[:, 7:]
     PHt = P[:, :6]  # K = P H' S^-1 = P[:, :6] (H_pose' S^-1)
-    I_KH = _I12.copy()
-    I_KH[:, :6] -= PHt @ G
-    P_post = I_KH @ P @ I_KH.T + PHt @ (X @ A @ X.T) @ PHt.T  # (I-KH) P (I-KH)' + K R K'
+    KH = PHt @ G  # the pose columns of K H (its twist columns are 0)
+    M = P - KH @ P[:6]  # (I - K H) P
+    P_post = M - M[:, :6] @ KH.T + PHt @ (X @ A @ X.T) @ PHt.T  # M (I-KH)' + K R K'
     return PHt @ u, 0.5 * (P_post + P_post.T)
 
 
@@ -314,7 +325,7 @@ def corrected(prior: Prediction, A: Array, b: Array) -> Posterior:
     """The posterior of ``prior`` after the stacked update (:func:`correction`); the pose is
     updated on the group, ``T = Exp(delta) T_p``, the twist additively."""
     dx, P = correction(prior.P, A, b)
-    return Posterior(T=se3_exp(dx[:6]) @ prior.T, xi=prior.xi + dx[6:], P=P)
+    return Posterior(T=se3_exp_fast(dx[:6]) @ prior.T, xi=prior.xi + dx[6:], P=P)
 
 
 def merge_pose(P_velocity: Array, P_pose: Array) -> Array:
@@ -324,8 +335,7 @@ def merge_pose(P_velocity: Array, P_pose: Array) -> Array:
     (``L``: Cholesky factors of the two pose blocks), which keeps the result positive
     semi-definite and the correlation structure of ``P_velocity``.
     """
-    L_v = np.linalg.cholesky(P_velocity[:6, :6])
-    L_p = np.linalg.cholesky(P_pose)
+    L_v, L_p = np.linalg.cholesky(np.array([P_velocity[:6, :6], P_pose]))
     M = np.linalg.solve(L_v.T, L_p.T).T  # L_p L_v^-1
     P = P_velocity.copy()
     P[:6, :6] = P_pose
@@ -338,12 +348,11 @@ def pose_fused(prior: Prediction, T_z: Array, R_z: Array) -> tuple[Array, Array]
     """``(K y, P_post)`` of the EKF update of ``prior`` with a pose measurement ``T_z`` (4, 4) of
     covariance ``R_z`` (6, 6): ``y = log(T_z T_p^-1)`` (left), ``H = [I6, 0]``, Joseph form."""
     P = prior.P
-    y = se3_log(T_z @ se3_inverse(prior.T))
+    y = se3_log_fast(T_z @ se3_inverse_fast(prior.T))
     S = P[:6, :6] + R_z  # S = H P H' + R
     K = np.linalg.solve(S, P[:6, :]).T  # K = P H' S^-1
-    I_KH = _I12.copy()
-    I_KH[:, :6] -= K
-    P_post = I_KH @ P @ I_KH.T + K @ R_z @ K.T
+    M = P - K @ P[:6]  # (I - K H) P
+    P_post = M - M[:, :6] @ K.T + K @ R_z @ K.T  # M (I - K H)' + K R K'
     return K @ y, 0.5 * (P_post + P_post.T)
 
 
@@ -351,7 +360,7 @@ def body_to_frame(T: Array, M: Array) -> Array:
     """A (12, 12) error covariance over [pose, twist] in body coordinates (perturbations about
     the body origin) as the left-perturbation covariance in the tracking frame:
     ``G M G'`` with ``G = blkdiag(Ad(T), Ad(T))``."""
-    Ad = se3_adjoint(T)
+    Ad = se3_adjoint_fast(T)
     G = np.zeros((12, 12))
     G[:6, :6] = Ad
     G[6:, 6:] = Ad
@@ -400,10 +409,10 @@ class HandBodyEkf:
         """``(Exp(dt xi), F)`` of the constant-velocity model,
         ``F = [[Ad(Exp(dt xi)), dt J_l(dt xi)], [0, I]]``."""
         step = dt_s * self.xi
-        E = se3_exp(step)
+        E = se3_exp_fast(step)
         F = _I12.copy()
-        F[:6, :6] = se3_adjoint(E)
-        F[:6, 6:] = dt_s * se3_left_jacobian(step)
+        F[:6, :6] = se3_adjoint_fast(E)
+        F[:6, 6:] = dt_s * se3_left_jacobian_fast(step)
         return E, F
 
     def predict(self, dt_s: float, kinematic: tuple[Array, Array] | None = None
@@ -428,7 +437,7 @@ class HandBodyEkf:
             P_k = np.zeros((12, 12))
             P_k[:6, :6] = C_k + Q[:6, :6]
             P_k[6:, 6:] = P_cv[6:, 6:]
-            xi_k = se3_log(T_k @ se3_inverse(self.T)) / dt_s
+            xi_k = se3_log_fast(T_k @ se3_inverse_fast(self.T)) / dt_s
             out.append(Prediction("kinematic", np.array(T_k, dtype=float), xi_k, P_k, C_k))
         return out
 
@@ -465,7 +474,8 @@ class BodyStep:
     ``model``: index of the winning prediction; ``log_likelihood`` (m,) of every prediction;
     ``accepted``/``rejected`` (n,) landmarks to use / rejected as outliers; ``y`` (n, 3) the
     innovations against the winner; ``A`` (m, 6, 6), ``b`` (m, 6) every prediction's information
-    sums over the accepted landmarks (input of :meth:`HandBodyEkf.update_chosen`).
+    sums over the accepted landmarks (input of :meth:`HandBodyEkf.update_chosen`); ``W``
+    (n, 3, 3) the inverse measurement covariances ``R_i^-1`` of all n landmarks.
     """
 
     model: int
@@ -475,6 +485,7 @@ class BodyStep:
     y: Array
     A: Array
     b: Array
+    W: Array
 
 
 def select_and_gate(predictions: list[Prediction], z: Array, points_body: Array, r: Array,
@@ -489,36 +500,44 @@ def select_and_gate(predictions: list[Prediction], z: Array, points_body: Array,
     covariances (n, 3, 3) or isotropic variances (n,).
     """
     m, n = len(predictions), z.shape[0]
-    T = np.stack([p.T for p in predictions])
-    P_pose = np.stack([p.P[:6, :6] for p in predictions])
-    C = np.stack([p.C for p in predictions])
+    T = np.array([p.T for p in predictions])
+    P_pose = np.array([p.P[:6, :6] for p in predictions])
+    C = np.array([p.C for p in predictions])
     q = predicted_points(T, points_body)  # (m, n, 3)
     y = z[None] - q
+    H = measurement_jacobians(q)  # (m, n, 3, 6)
     R = as_covariances(r)
     W_all, det_R = inv_sym3(R)
     if gate:
-        prior_ok = prior_gate_passes(q, y, P_pose, R, threshold)  # (m, n)
+        prior_ok = prior_gate_passes(q, y, P_pose, R, threshold, W=W_all)  # (m, n)
         select = prior_ok.any(axis=0)
     else:
         prior_ok = np.ones((m, n), dtype=bool)
         select = prior_ok[0]
-    A, b, c = information_sums(q, y, np.where(select[:, None, None], W_all, 0.0))
-    ll = log_likelihoods(C, A, b, c, float(np.log(det_R[select]).sum()), int(select.sum()))
-    best = int(np.argmax(ll))  # the first of equals wins: static before constant_velocity
+    all_selected = bool(select.all())
+    W_select = W_all if all_selected else np.where(select[:, None, None], W_all, 0.0)
+    A, b, c = information_sums_from_jacobians(H, y, W_select)
+    logdet_R = float(np.log(det_R if all_selected else det_R[select]).sum())
+    ll = log_likelihoods(C, A, b, c, logdet_R, int(select.sum()))
+    best = int(ll.argmax())  # the first of equals wins: static before constant_velocity
     accepted = prior_ok[best].copy()
+    same = accepted.all() if all_selected else np.array_equal(accepted, select)
     if gate and accepted.sum() >= 2:
-        if np.array_equal(accepted, select):
+        if same:
             A_best, b_best = A[best], b[best]
         else:
-            A_w, b_w, _ = information_sums(q[best:best + 1], y[best:best + 1],
-                                           np.where(accepted[:, None, None], W_all, 0.0))
+            A_w, b_w, _ = information_sums_from_jacobians(
+                H[best:best + 1], y[best:best + 1], np.where(accepted[:, None, None], W_all, 0.0))
             A_best, b_best = A_w[0], b_w[0]
-        accepted &= posterior_residual_passes(q[best], y[best], R, P_pose[best], A_best, b_best,
-                                              threshold)
-    if not np.array_equal(accepted, select):
-        A, b, _ = information_sums(q, y, np.where(accepted[:, None, None], W_all, 0.0))
+        passes = _posterior_residual_passes(H[best], y[best], R, P_pose[best], A_best, b_best,
+                                            threshold)
+        if not passes[accepted].all():
+            accepted &= passes
+            same = False
+    if not same:
+        A, b, _ = information_sums_from_jacobians(H, y, np.where(accepted[:, None, None], W_all, 0.0))
     return BodyStep(model=best, log_likelihood=ll, accepted=accepted, rejected=~accepted,
-                    y=y[best], A=A, b=b)
+                    y=y[best], A=A, b=b, W=W_all)
 
 
 def body_noise_matrices(p0: tuple[float, float, float, float],
@@ -541,6 +560,7 @@ __all__ = [
     "corrected",
     "correction",
     "information_sums",
+    "information_sums_from_jacobians",
     "informative",
     "innovation_covariance",
     "log_likelihoods",

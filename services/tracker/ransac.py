@@ -63,11 +63,16 @@ def _rotation_from_cross_covariance(C: Array) -> Array:
     ``R = U diag(1, 1, det(U V')) V'`` (Kabsch/Umeyama, reflection excluded).
     """
     U, _, Vt = np.linalg.svd(C)
-    d = np.sign(np.linalg.det(U @ Vt))
-    d = np.where(d == 0.0, 1.0, d)
-    U = U.copy()
-    U[..., :, 2] *= d[..., None]
     R: Array = U @ Vt
+    if C.ndim == 2:  # one matrix: the sign of det(U V') on floats, a second product if negative
+        (a, b, c), (d, e, f), (g, h, i) = R.tolist()
+        if a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g) < 0.0:
+            U[:, 2] = -U[:, 2]
+            R = U @ Vt
+        return R
+    d = np.sign(np.linalg.det(R))
+    U[..., :, 2] *= np.where(d == 0.0, 1.0, d)[..., None]
+    R = U @ Vt
     return R
 
 

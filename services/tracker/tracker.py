@@ -46,7 +46,6 @@ from services.tracker.body import (
     HandBodyEkf,
     body_noise_matrices,
     information_sums,
-    mahalanobis_sq,
     select_and_gate,
 )
 from services.tracker.config import TrackerConfig
@@ -57,8 +56,6 @@ from services.tracker.landmarks import (
     articulation_variances,
     body_landmark_mask,
     body_measurement_covariances,
-    inv_sym3,
-    missing_mask,
     ray_measurement_covariances,
 )
 from services.tracker.ransac import initial_body, rigid_ransac, weighted_kabsch
@@ -76,6 +73,7 @@ STATUS_EXCLUDED = 3  # the wrist, excluded by the saliency model
 _ROTATION_TOL = 1e-6
 _CHI2_3_99 = 11.345  # 99 % point of the chi-square distribution with 3 degrees of freedom
 _MAX_COORD_M = 1e3  # coordinates beyond 1 km are treated as missing (keeps the numerics finite)
+_I3 = np.eye(3)
 
 
 @dataclass(frozen=True, eq=False)
@@ -184,6 +182,10 @@ class HandTracker:
             (config.q_rb_position_m2, config.q_rb_rotation_rad2,
              config.q_rb_linear_velocity_m2ps2, config.q_rb_angular_velocity_rad2ps2))
         self._bank = LandmarkFilterBank(len(HANDS) * NUM_LANDMARKS, config)
+        # The constant terms of body_measurement_covariances (R_rb), computed once.
+        self._saliency = np.asarray(config.saliency_factors(), dtype=float)[:, None, None]
+        self._R_uniform = body_measurement_covariances(np.zeros((NUM_LANDMARKS, 3, 3)), config)
+        self._R_uniform.flags.writeable = False
         self._window: deque[_WindowFrame] = deque(maxlen=config.init_window_frames)
         self.reset()
 
@@ -199,12 +201,13 @@ class HandTracker:
         self._slot: int | None = None
         self._ekf: HandBodyEkf | None = None
         self._points_body: Array | None = None
+        self._in_model = np.zeros(NUM_LANDMARKS, dtype=bool)  # finite rows of _points_body
         self._memory: Array | None = None  # the last body model, for re-acquisition
         self._template_count = np.zeros(NUM_LANDMARKS)
         self._candidates = np.full((NUM_LANDMARKS, max(1, self._cfg.template_candidate_frames), 3),
                                    np.nan)
         self._candidate_count = np.zeros(NUM_LANDMARKS, dtype=np.intp)
-        self._articulation = np.zeros(NUM_LANDMARKS)
+        self._set_articulation(np.zeros(NUM_LANDMARKS))
         self._body_stamp_ns = 0
         self._variance_factor: float | None = None
         self._last_residuals: Array | None = None
@@ -275,8 +278,7 @@ class HandTracker:
 
         observed = self._parse_hands(hands)
         slot = self._tracked_slot(observed)
-        z = np.full((len(HANDS) * NUM_LANDMARKS, 3), np.nan)
-        z_camera = np.full_like(z, np.nan)
+        z_camera = np.full((len(HANDS) * NUM_LANDMARKS, 3), np.nan)
         for s, (_, points) in observed.items():
             z_camera[s * NUM_LANDMARKS:(s + 1) * NUM_LANDMARKS] = points
         z = z_camera if T_wc is None else z_camera @ T_wc[:3, :3].T + T_wc[:3, 3]
@@ -303,16 +305,18 @@ class HandTracker:
         if self._cfg.use_uncertainty_models:
             status[WRIST] = STATUS_EXCLUDED
         usable = update.fresh[rows] & self._body_mask
+        inputs = self._body_inputs(rows)
         model: str | None
         if self._ekf is None:
-            model = self._initialise(stamp_ns, rows, usable, status)
+            model, inputs = self._initialise(stamp_ns, rows, usable, status, inputs)
         else:
-            model = self._track(stamp_ns, rows, usable, status, kinematic_prior)
+            model, inputs = self._track(stamp_ns, rows, usable, status, kinematic_prior, inputs)
         if model is None:
             return None
-        # Outputs after the body step: a body-level rejection undoes the landmark correction.
-        positions, R_rb = self._body_inputs(rows)
-        trace = np.einsum("nii->n", R_rb)
+        # Outputs after the body step (_track recomputed the inputs where a body-level
+        # rejection undid a landmark correction or the articulation variances changed).
+        positions, R_rb = inputs
+        trace = R_rb[:, 0, 0] + R_rb[:, 1, 1] + R_rb[:, 2, 2]
         variance = np.where(self._bank.alive[rows], trace, np.nan)
         return self._estimate(stamp_ns, positions, variance, status, model)
 
@@ -345,7 +349,7 @@ class HandTracker:
             if not np.isfinite(visibility).all():
                 self._reject("non_finite_visibility")
                 continue
-            if not np.isfinite(score):
+            if not math.isfinite(score):
                 self._reject("non_finite_score")
                 continue
             slot = HANDS.index(handedness)
@@ -353,9 +357,11 @@ class HandTracker:
                 self._reject("duplicate_handedness")
                 if score <= out[slot][0]:
                     continue
-            missing = missing_mask(points, visibility, self._cfg.visibility_threshold)
-            missing |= ~(np.abs(points) < _MAX_COORD_M).all(axis=1)  # NaN compares False
-            out[slot] = (score, np.where(missing[:, None], np.nan, points))
+            # missing_mask(points, visibility, threshold), with coordinates beyond 1 km missing
+            # too: |x| < 1 km is False for NaN and inf, so it also covers the finiteness test.
+            present = ((np.abs(points) < _MAX_COORD_M).all(axis=1)
+                       & (visibility >= self._cfg.visibility_threshold))
+            out[slot] = (score, np.where(present[:, None], points, np.nan))
         return out
 
     def _tracked_slot(self, observed: dict[int, tuple[float, Array]]) -> int | None:
@@ -376,10 +382,7 @@ class HandTracker:
         if factor == 1.0:
             # Isotropic: R_wc R_lm R_wc' = R_lm, the same in the camera and world frames.
             return np.broadcast_to(cfg.r_lm_m2 * np.eye(3), (z_camera.shape[0], 3, 3))
-        norm = np.linalg.norm(z_camera, axis=1)
-        ok = np.isfinite(norm) & (norm > 0.0)
-        rays = np.zeros_like(z_camera)
-        rays[ok] = z_camera[ok] / norm[ok, None]
+        rays = z_camera  # the viewing rays, unnormalised (ray_measurement_covariances normalises)
         if T_wc is not None:
             rays = rays @ T_wc[:3, :3].T  # R = r (I - u u') + f r u u' rotates with its ray
         return ray_measurement_covariances(rays, cfg.r_lm_m2, factor)
@@ -390,7 +393,7 @@ class HandTracker:
             self._memory = self._points_body
             self._ekf = None
             self._points_body = None
-            self._articulation = np.zeros(NUM_LANDMARKS)
+            self._set_articulation(np.zeros(NUM_LANDMARKS))
             self._last_residuals = None
             self._window.clear()
             self.reinitializations += 1
@@ -420,34 +423,45 @@ class HandTracker:
         v[rows] = xi[:3] + z[rows] @ skew(xi[3:]).T  # NaN rows are not started
         return v
 
+    def _set_articulation(self, variances: Array) -> None:
+        """Articulation variances ``a_k`` (21,) of R_rb, with their ``a_k I3`` terms."""
+        self._articulation = variances
+        self._articulation_I3 = variances[:, None, None] * _I3
+
     def _body_inputs(self, rows: slice) -> tuple[Array, Array]:
-        """Filtered positions (21, 3) and ``R_rb`` (21, 3, 3) of the tracked hand."""
+        """Filtered positions (21, 3) and ``R_rb`` (21, 3, 3) of the tracked hand
+        (:func:`~services.tracker.landmarks.body_measurement_covariances`, its per-landmark
+        terms precomputed; the ablation's uniform ``R_rb`` is shared, read-only)."""
         bank = self._bank
         positions = np.where(bank.alive[rows, None], bank.x[rows, :3], np.nan)
-        return positions, body_measurement_covariances(bank.P[rows, :3, :3], self._cfg,
-                                                       self._articulation)
+        if not self._cfg.use_uncertainty_models:
+            return positions, self._R_uniform
+        R_rb: Array = self._saliency * bank.P[rows, :3, :3] + self._articulation_I3
+        return positions, R_rb
 
     def _initialise(self, stamp_ns: int, rows: slice, usable: BoolArray,
-                    status: NDArray[np.uint8]) -> str:
-        """Collect the window; try the weighted RANSAC once it is full. Returns the model name."""
-        positions, R_rb = self._body_inputs(rows)
-        r_rb = np.einsum("nii->n", R_rb) / 3.0
+                    status: NDArray[np.uint8], inputs: tuple[Array, Array]
+                    ) -> tuple[str, tuple[Array, Array]]:
+        """Collect the window; try the weighted RANSAC once it is full. ``inputs``: this frame's
+        :meth:`_body_inputs`. Returns the model name and the body inputs after this step."""
+        positions, R_rb = inputs
+        r_rb = (R_rb[:, 0, 0] + R_rb[:, 1, 1] + R_rb[:, 2, 2]) / 3.0
         self._window.append(_WindowFrame(stamp_ns, positions, r_rb, usable.copy()))
         status[usable] = STATUS_USED
         cfg = self._cfg
         if len(self._window) < cfg.init_window_frames:
-            return MOTION_MODELS[0]
+            return MOTION_MODELS[0], inputs
         first, last = self._window[0], self._window[-1]
         eligible = first.usable & last.usable
         if eligible.sum() < cfg.min_inliers:
-            return MOTION_MODELS[0]
+            return MOTION_MODELS[0], inputs
         result = rigid_ransac(first.positions[eligible], last.positions[eligible],
                               first.variances[eligible], last.variances[eligible],
                               iterations=cfg.ransac_iterations,
                               threshold=cfg.ransac_inlier_mahalanobis,
                               refinements=cfg.ransac_refinements, rng=self._rng)
         if result is None or result.inliers.sum() < cfg.min_inliers:
-            return MOTION_MODELS[0]
+            return MOTION_MODELS[0], inputs
         inliers = np.zeros(NUM_LANDMARKS, dtype=bool)
         inliers[np.flatnonzero(eligible)[result.inliers]] = True
         frames = list(self._window)
@@ -465,18 +479,20 @@ class HandTracker:
         self._ekf = HandBodyEkf(T_frame_body, body.twist, self._P0_rb, self._Q_rb,
                                 cfg.nominal_dt_s)
         self._points_body = points_body
+        self._in_model = np.isfinite(points_body).all(axis=1)
         self._memory = None  # the body model is the memory from now on
         self._template_count = np.where(np.isfinite(body.points_body).all(axis=1),
                                         float(len(frames)), 0.0)
         self._candidates[:] = np.nan
         self._candidate_count[:] = 0
         if cfg.use_uncertainty_models:
-            self._articulation = articulation_variances(points_body, cfg.articulation_std_rad)
+            self._set_articulation(articulation_variances(points_body, cfg.articulation_std_rad))
+            inputs = self._body_inputs(rows)
         self._seed_from_window(frames)
         self._body_stamp_ns = stamp_ns
         self._window.clear()
         status[usable & ~inliers] = STATUS_OUTLIER
-        return MOTION_MODELS[0]
+        return MOTION_MODELS[0], inputs
 
     def reacquire(self, points_body: Array, variances: Array) -> Array | None:
         """The transform X (4x4) with ``points_body ~= X p_old`` for the remembered body model
@@ -566,30 +582,26 @@ class HandTracker:
             if np.isfinite(P_fit).all():
                 ekf.P[:6, :6] += 0.5 * (P_fit + P_fit.T)
 
-    def _update_variance_factor(self, used: NDArray[np.intp], positions: Array,
-                                points_body: Array, R_rb: Array) -> None:
+    def _update_variance_factor(self, used: NDArray[np.intp], residual: Array, d2: Array,
+                                W: Array) -> None:
         """Track the a-posteriori variance of unit weight of the body fit and the frame-to-frame
         correlation of its residuals.
 
         ``sum(r_i' R_i^-1 r_i) / (3n - 6)`` over the posterior residuals ``r_i = z_i - T p_i`` of
-        the ``used`` landmarks (rows of the (21, ...) arrays) estimates how far the filter's
-        covariances are off from the data (1 when the noise model is right); it is smoothed over
-        frames. The lag-one correlation ``rho = sum r_i(t)' W_i r_i(t-1) / sum r_i' W_i r_i`` of
-        the residuals of landmarks used in both frames is smoothed the same way: detector errors
-        and grip adjustments persist over many frames (the landmark filters add some more), so
+        the ``used`` landmarks (indices into the 21 rows; ``residual`` (n, 3), their ``d2``
+        (n,) ``= r_i' R_i^-1 r_i`` and ``W`` (n, 3, 3) ``= R_i^-1``, from
+        :meth:`_fit_residuals`) estimates how far the filter's covariances are off from
+        the data (1 when the noise model is right); it is smoothed over frames. The lag-one
+        correlation ``rho = sum r_i(t)' W_i r_i(t-1) / sum r_i' W_i r_i`` of the residuals of
+        landmarks used in both frames is smoothed the same way: detector errors and grip
+        adjustments persist over many frames (the landmark filters add some more), so
         successive poses are not independent measurements (see :attr:`correlation_factor`).
         """
-        ekf = self._ekf
-        assert ekf is not None
         n = used.size
         if n * 3 <= 6:
             self._last_residuals = None
             return
-        residual = np.full((NUM_LANDMARKS, 3), np.nan)
-        residual[used] = positions[used] - (points_body[used] @ ekf.T[:3, :3].T + ekf.T[:3, 3])
-        W, _ = inv_sym3(R_rb[used])
-        d2 = np.einsum("ni,nij,nj->n", residual[used], W, residual[used])
-        sample = float(np.sum(d2)) / (3 * n - 6)
+        sample = float(d2.sum()) / (3 * n - 6)
         if not math.isfinite(sample) or sample <= 0.0:
             return
         a = self._cfg.variance_factor_smoothing
@@ -599,20 +611,33 @@ class HandTracker:
             self._variance_factor += a * (sample - self._variance_factor)
         last = self._last_residuals
         if last is not None:
-            both = np.isfinite(last[used]).all(axis=1)
+            prev = last[used]
+            both = np.isfinite(prev).all(axis=1)
             if both.any():
-                prev = last[used][both]
-                now = residual[used][both]
-                Wb = W[both]
-                cross = float(np.einsum("ni,nij,nj->", now, Wb, prev))
-                power = 0.5 * float(np.einsum("ni,nij,nj->", now, Wb, now)
-                                    + np.einsum("ni,nij,nj->", prev, Wb, prev))
+                now, now_d2 = residual, d2
+                if not both.all():
+                    prev, now, now_d2, W = prev[both], now[both], now_d2[both], W[both]
+                W_prev = (W @ prev[:, :, None])[:, :, 0]
+                cross = float((now * W_prev).sum())  # sum r(t)' W r(t-1), W symmetric
+                power = 0.5 * (float(now_d2.sum()) + float((prev * W_prev).sum()))
                 if self._residual_cross is None:
                     self._residual_cross, self._residual_power = cross, power
                 else:
                     self._residual_cross += a * (cross - self._residual_cross)
                     self._residual_power += a * (power - self._residual_power)
-        self._last_residuals = residual
+        full = np.full((NUM_LANDMARKS, 3), np.nan)
+        full[used] = residual
+        self._last_residuals = full
+
+    def _fit_residuals(self, used: NDArray[np.intp], positions: Array, W: Array
+                             ) -> tuple[Array, Array]:
+        """Posterior residuals ``r_i = z_i - T p_i`` (n, 3) of the ``used`` landmarks after the
+        body correction and ``r_i' R_i^-1 r_i`` (n,), with ``W`` (n, 3, 3) ``= R_i^-1``."""
+        ekf = self._ekf
+        assert ekf is not None and self._points_body is not None
+        residual = positions[used] - (self._points_body[used] @ ekf.T[:3, :3].T + ekf.T[:3, 3])
+        d2 = (residual[:, None, :] @ W @ residual[:, :, None])[:, 0, 0]
+        return residual, d2
 
     @property
     def variance_factor(self) -> float:
@@ -668,9 +693,10 @@ class HandTracker:
         # The prior is in the published units (metres, radians); the filter's are Table I's.
         return T, Sigma / self.variance_factor
 
-    def _refine_template(self, positions: Array, R_rb: Array, accepted: NDArray[np.intp],
-                         newcomers: BoolArray) -> None:
-        """Refine the body model with this frame's landmarks (after the body correction).
+    def _refine_template(self, positions: Array, accepted: NDArray[np.intp], d2: Array,
+                         newcomers: BoolArray) -> bool:
+        """Refine the body model with this frame's landmarks (after the body correction); True
+        when the articulation variances (and with them ``R_rb``) changed.
 
         The body-frame coordinates ``p_i`` fixed at initialisation come from a few frames of noisy
         landmarks and from the RANSAC inliers only. Each frame, every landmark the body accepted
@@ -680,7 +706,8 @@ class HandTracker:
         observation ``T^-1 z_i`` to a running mean of up to
         ``template_memory_frames`` frames; a measured landmark outside the model collects
         observations, and joins the model at their :func:`robust_centre` (robust to the depth
-        outliers among them) after ``template_candidate_frames``. The refined model is
+        outliers among them) after ``template_candidate_frames``. ``d2`` (n,): the accepted
+        landmarks' ``r' R_rb^-1 r`` (:meth:`_fit_residuals`). The refined model is
         then aligned to the previous one (weighted Kabsch over the previous model's landmarks),
         so only its shape changes: the body frame, and with it the published poses, does not
         drift with the refinement.
@@ -688,14 +715,12 @@ class HandTracker:
         cfg = self._cfg
         ekf = self._ekf
         if cfg.template_memory_frames <= 0 or ekf is None or self._points_body is None:
-            return
+            return False
         old = self._points_body
         R_T, t_T = ekf.T[:3, :3], ekf.T[:3, 3]
         obs = (positions - t_T) @ R_T  # T^-1 z, row-wise
         new = old.copy()
         if accepted.size and cfg.use_uncertainty_models:  # an outlier gate: off in the ablation
-            residual = (obs[accepted] - old[accepted]) @ R_T.T  # z - T p, frame coordinates
-            d2, _ = mahalanobis_sq(R_rb[accepted], residual)
             accepted = accepted[d2 < _CHI2_3_99]
         if accepted.size:
             n = np.minimum(self._template_count[accepted] + 1.0, cfg.template_memory_frames)
@@ -703,7 +728,7 @@ class HandTracker:
             self._template_count[accepted] = n
         joined = False
         k = cfg.template_candidate_frames
-        if k > 0:
+        if k > 0 and newcomers.any():
             for j in np.flatnonzero(newcomers & np.isfinite(obs).all(axis=1)):
                 self._candidates[j, self._candidate_count[j] % k] = obs[j]
                 self._candidate_count[j] += 1
@@ -711,26 +736,35 @@ class HandTracker:
                     new[j] = robust_centre(self._candidates[j])
                     self._template_count[j] = float(k)
                     joined = True
-        model = np.isfinite(old).all(axis=1)
-        if model.sum() >= 3:
-            R, t = weighted_kabsch(new[model], old[model], np.ones(int(model.sum())))
+        model = self._in_model
+        count = int(model.sum())
+        if count >= 3:
+            R, t = weighted_kabsch(new[model], old[model], np.ones(count))
             new = new @ R.T + t
         self._points_body = new
-        if joined and cfg.use_uncertainty_models:
-            self._articulation = articulation_variances(new, cfg.articulation_std_rad)
+        if not joined:
+            return False
+        self._in_model = np.isfinite(new).all(axis=1)
+        if not cfg.use_uncertainty_models:
+            return False
+        self._set_articulation(articulation_variances(new, cfg.articulation_std_rad))
+        return True
 
     def _track(self, stamp_ns: int, rows: slice, usable: BoolArray, status: NDArray[np.uint8],
-               prior: KinematicPrior | None) -> str | None:
-        """Predict, choose the motion model, gate and correct the body EKF.
+               prior: KinematicPrior | None, inputs: tuple[Array, Array]
+               ) -> tuple[str | None, tuple[Array, Array]]:
+        """Predict, choose the motion model, gate and correct the body EKF. ``inputs``: this
+        frame's :meth:`_body_inputs`.
 
         Returns the winning model's name, or None when no correction was possible (the body may
-        then have been dropped, in which case this frame starts a new initialisation window).
+        then have been dropped, in which case this frame starts a new initialisation window),
+        and the body inputs after this step.
         """
         ekf = self._ekf
         assert ekf is not None and self._points_body is not None
         cfg = self._cfg
-        positions, R_rb = self._body_inputs(rows)
-        candidates = usable & np.isfinite(self._points_body).all(axis=1)
+        positions, R_rb = inputs
+        candidates = usable & self._in_model
         idx = np.flatnonzero(candidates)
         if idx.size >= cfg.min_inliers:
             dt = (stamp_ns - self._body_stamp_ns) * 1e-9
@@ -748,16 +782,20 @@ class HandTracker:
             if used.size >= cfg.min_inliers:
                 chosen = predictions[step.model]
                 ekf.update_chosen(predictions, step)
-                self._update_variance_factor(used, positions, self._points_body, R_rb)
-                self._refine_template(positions, R_rb, used, usable & ~candidates)
+                W = step.W[step.accepted]
+                residual, d2 = self._fit_residuals(used, positions, W)
+                self._update_variance_factor(used, residual, d2, W)
+                changed = self._refine_template(positions, used, d2, usable & ~candidates)
                 self._body_stamp_ns = stamp_ns
                 status[used] = STATUS_USED
-                return chosen.model
+                if rejected.size or changed:
+                    inputs = self._body_inputs(rows)
+                return chosen.model, inputs
         self._maybe_drop_body(stamp_ns)
         if self._ekf is not None:
             self._skip("too_few_landmarks")
-            return None
-        return self._initialise(stamp_ns, rows, usable, status)
+            return None, inputs
+        return self._initialise(stamp_ns, rows, usable, status, self._body_inputs(rows))
 
 
 __all__ = [

@@ -107,3 +107,21 @@ def test_transform_points_and_quaternion() -> None:
     assert np.allclose(se3.transform_points(T, P), homo)
     q = se3.quat_wxyz_from_matrix(T[:3, :3])
     assert q[0] >= 0 and abs(np.linalg.norm(q) - 1) < 1e-12
+
+
+@settings(max_examples=200, deadline=None)
+@given(twists())
+def test_float_kernels_agree_with_the_numpy_maps(xi: np.ndarray) -> None:
+    """The ``*_fast`` kernels are the same maps as their numpy namesakes, to round-off."""
+    T = se3.se3_exp(xi)
+    np.testing.assert_allclose(se3.se3_exp_fast(xi), T, atol=1e-12)
+    np.testing.assert_allclose(se3.se3_log_fast(T), se3.se3_log(T), atol=1e-9)
+    np.testing.assert_allclose(se3.se3_inverse_fast(T), se3.se3_inverse(T), atol=1e-12)
+    np.testing.assert_allclose(se3.se3_adjoint_fast(T), se3.se3_adjoint(T), atol=1e-12)
+    np.testing.assert_allclose(se3.se3_left_jacobian_fast(xi), se3.se3_left_jacobian(xi),
+                               atol=1e-9)
+    np.testing.assert_allclose(se3.so3_exp_fast(xi[3:]), se3.so3_exp(xi[3:]), atol=1e-12)
+    np.testing.assert_allclose(se3.so3_log_fast(T[:3, :3]), se3.so3_log(T[:3, :3]), atol=1e-9)
+    np.testing.assert_allclose(se3.so3_left_jacobian_fast(xi[3:]),
+                               se3.so3_left_jacobian(xi[3:]), atol=1e-12)
+    assert abs(se3.rotation_angle_fast(T[:3, :3]) - se3.rotation_angle(T[:3, :3])) < 1e-9

@@ -10,9 +10,10 @@ from pathlib import Path
 
 import pytest
 
-from services.common.bus import Bus, BusError, QueryAnswer, ZenohOptions
+from services.common.bus import Bus, BusError, NoResponder, QueryAnswer, ZenohOptions
 from services.common.keys import Keys
 from services.common.processes import free_tcp_endpoint
+from tests.conftest import wait_until
 
 ZENOH = Path(__file__).resolve().parents[2] / "docker" / "zenoh"
 KEYS = Keys("tls")
@@ -79,7 +80,14 @@ def test_clients_with_certificates_talk_over_mutual_tls(deployment: tuple[str, P
     with _client(endpoint, tls, "kinematics") as kinematics, \
             _client(endpoint, tls, "operator") as operator:
         kinematics.declare_queryable(KEYS.kinematics_model, lambda r: QueryAnswer(b"model"))
-        assert operator.get(KEYS.kinematics_model, timeout=3.0)[0][1] == b"model"
+
+        def answered() -> bool:  # the declaration reaches the router asynchronously
+            try:
+                return operator.get(KEYS.kinematics_model, timeout=3.0)[0][1] == b"model"
+            except NoResponder:
+                return False
+
+        wait_until(answered, 10, period=0.1, what="the model answered over mutual TLS")
 
 
 def test_a_client_with_a_certificate_from_another_ca_is_refused(

@@ -15,6 +15,19 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.linalg.lapack import dposv
 
+from services.common.se3 import (  # noqa: F401 - the float kernels, re-exported
+    _jl_coeffs,
+    _rotation_rows,
+    _so3_coeffs,
+    rotation_angle_fast,
+    se3_exp_fast,
+    se3_inverse_fast,
+    se3_log_fast,
+    so3_exp_fast,
+    so3_left_jacobian_fast,
+    so3_log_fast,
+)
+from services.common.se3 import se3_adjoint_fast as adjoint_fast  # noqa: F401
 from services.kinematics.config import KinematicsConfig
 
 Array = NDArray[np.float64]
@@ -107,151 +120,6 @@ def axis_basis_change(B_from: Array, B_to: Array, sign: float = 1.0) -> Array:
 # --------------------------------------------------------------------------------------------
 # SO(3) / SE(3) on floats
 # --------------------------------------------------------------------------------------------
-
-
-def _so3_coeffs(th2: float) -> tuple[float, float]:
-    """``(sin t / t, (1 - cos t) / t^2)`` with their series below the small angle."""
-    if th2 < _SMALL_ANGLE_SQ:
-        return 1.0 - th2 / 6.0, 0.5 - th2 / 24.0
-    th = math.sqrt(th2)
-    return math.sin(th) / th, (1.0 - math.cos(th)) / th2
-
-
-def _jl_coeffs(th2: float) -> tuple[float, float]:
-    """``(a, b)`` of ``J_l(w) = I + a [w]x + b [w]x^2``."""
-    if th2 < _SMALL_ANGLE_SQ:
-        return 0.5 - th2 / 24.0, 1.0 / 6.0 - th2 / 120.0
-    th = math.sqrt(th2)
-    return (1.0 - math.cos(th)) / th2, (th - math.sin(th)) / (th2 * th)
-
-
-def _rotation_rows(w0: float, w1: float, w2: float, a: float, b: float,
-                   th2: float) -> list[list[float]]:
-    """Rows of ``I + a [w]x + b [w]x^2`` (with ``[w]x^2 = w w^T - |w|^2 I``)."""
-    d = 1.0 - b * th2
-    return [[d + b * w0 * w0, b * w0 * w1 - a * w2, b * w0 * w2 + a * w1],
-            [b * w1 * w0 + a * w2, d + b * w1 * w1, b * w1 * w2 - a * w0],
-            [b * w2 * w0 - a * w1, b * w2 * w1 + a * w0, d + b * w2 * w2]]
-
-
-def so3_exp_fast(w: Array) -> Array:
-    """Rotation matrix of the rotation vector ``w`` (as ``se3.so3_exp``)."""
-    w0, w1, w2 = w.tolist()
-    th2 = w0 * w0 + w1 * w1 + w2 * w2
-    a, b = _so3_coeffs(th2)
-    return np.array(_rotation_rows(w0, w1, w2, a, b, th2))
-
-
-def so3_left_jacobian_fast(w: Array) -> Array:
-    """Left Jacobian of SO(3) at ``w`` (as ``se3.so3_left_jacobian``)."""
-    w0, w1, w2 = w.tolist()
-    th2 = w0 * w0 + w1 * w1 + w2 * w2
-    a, b = _jl_coeffs(th2)
-    return np.array(_rotation_rows(w0, w1, w2, a, b, th2))
-
-
-def se3_exp_fast(xi: Array) -> Array:
-    """4x4 pose ``Exp(xi)``, ``xi = (v, w)`` (as ``se3.se3_exp``)."""
-    v0, v1, v2, w0, w1, w2 = xi.tolist()
-    th2 = w0 * w0 + w1 * w1 + w2 * w2
-    a, b = _so3_coeffs(th2)
-    rows = _rotation_rows(w0, w1, w2, a, b, th2)
-    ja, jb = _jl_coeffs(th2)
-    # t = J_l(w) v = v + ja (w x v) + jb (w x (w x v))
-    c0, c1, c2 = w1 * v2 - w2 * v1, w2 * v0 - w0 * v2, w0 * v1 - w1 * v0
-    cc0, cc1, cc2 = w1 * c2 - w2 * c1, w2 * c0 - w0 * c2, w0 * c1 - w1 * c0
-    rows[0].append(v0 + ja * c0 + jb * cc0)
-    rows[1].append(v1 + ja * c1 + jb * cc1)
-    rows[2].append(v2 + ja * c2 + jb * cc2)
-    rows.append([0.0, 0.0, 0.0, 1.0])
-    return np.array(rows)
-
-
-def _quat_from_rows(r00: float, r01: float, r02: float, r10: float, r11: float, r12: float,
-                    r20: float, r21: float, r22: float) -> tuple[float, float, float, float]:
-    """Unit quaternion ``(w, x, y, z)``, ``w >= 0`` (Shepperd, as ``se3.quat_wxyz_from_matrix``)."""
-    trace = r00 + r11 + r22
-    if trace >= max(r00, r11, r22):
-        s = 2.0 * math.sqrt(max(1.0 + trace, 0.0))
-        qw, qx, qy, qz = 0.25 * s, (r21 - r12) / s, (r02 - r20) / s, (r10 - r01) / s
-    elif r00 >= r11 and r00 >= r22:
-        s = 2.0 * math.sqrt(max(1.0 + r00 - r11 - r22, 0.0))
-        qw, qx, qy, qz = (r21 - r12) / s, 0.25 * s, (r01 + r10) / s, (r02 + r20) / s
-    elif r11 >= r22:
-        s = 2.0 * math.sqrt(max(1.0 - r00 + r11 - r22, 0.0))
-        qw, qx, qy, qz = (r02 - r20) / s, (r01 + r10) / s, 0.25 * s, (r12 + r21) / s
-    else:
-        s = 2.0 * math.sqrt(max(1.0 - r00 - r11 + r22, 0.0))
-        qw, qx, qy, qz = (r10 - r01) / s, (r02 + r20) / s, (r12 + r21) / s, 0.25 * s
-    n = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
-    if qw < 0.0:
-        n = -n
-    return qw / n, qx / n, qy / n, qz / n
-
-
-def _so3_log_rows(r00: float, r01: float, r02: float, r10: float, r11: float, r12: float,
-                  r20: float, r21: float, r22: float) -> tuple[float, float, float]:
-    """Rotation vector (angle in [0, pi]) via the quaternion (as ``se3.so3_log``)."""
-    qw, qx, qy, qz = _quat_from_rows(r00, r01, r02, r10, r11, r12, r20, r21, r22)
-    n = math.sqrt(qx * qx + qy * qy + qz * qz)
-    f = (2.0 / qw) * (1.0 - n * n / (3.0 * qw * qw)) if n < 1e-8 else 2.0 * math.atan2(n, qw) / n
-    return f * qx, f * qy, f * qz
-
-
-def so3_log_fast(R: Array) -> Array:
-    """Rotation vector of a rotation matrix (as ``se3.so3_log``)."""
-    (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = R.tolist()
-    return np.array(_so3_log_rows(r00, r01, r02, r10, r11, r12, r20, r21, r22))
-
-
-def se3_log_fast(T: Array) -> Array:
-    """Exponential coordinates ``(v, w)`` of a pose, angle in [0, pi] (as ``se3.se3_log``)."""
-    (r00, r01, r02, t0), (r10, r11, r12, t1), (r20, r21, r22, t2) = T[:3].tolist()
-    w0, w1, w2 = _so3_log_rows(r00, r01, r02, r10, r11, r12, r20, r21, r22)
-    th2 = w0 * w0 + w1 * w1 + w2 * w2
-    if th2 < _SMALL_ANGLE_SQ:
-        c = 1.0 / 12.0 + th2 / 720.0
-    else:
-        half = 0.5 * math.sqrt(th2)
-        c = (1.0 - half * math.cos(half) / math.sin(half)) / th2
-    # v = J_l^-1 t = t - (w x t) / 2 + c (w (w . t) - |w|^2 t)
-    x0, x1, x2 = w1 * t2 - w2 * t1, w2 * t0 - w0 * t2, w0 * t1 - w1 * t0
-    wt = w0 * t0 + w1 * t1 + w2 * t2
-    return np.array([t0 - 0.5 * x0 + c * (w0 * wt - th2 * t0),
-                     t1 - 0.5 * x1 + c * (w1 * wt - th2 * t1),
-                     t2 - 0.5 * x2 + c * (w2 * wt - th2 * t2), w0, w1, w2])
-
-
-def rotation_angle_fast(R: Array) -> float:
-    """Angle in [0, pi] of a rotation matrix, ``atan2(|vee(R - R^T)| / 2, (tr R - 1) / 2)``."""
-    (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = R.tolist()
-    s0, s1, s2 = r21 - r12, r02 - r20, r10 - r01
-    return math.atan2(0.5 * math.sqrt(s0 * s0 + s1 * s1 + s2 * s2), 0.5 * (r00 + r11 + r22 - 1.0))
-
-
-def se3_inverse_fast(T: Array) -> Array:
-    """Inverse ``[[R^T, -R^T t], [0, 1]]`` of a homogeneous pose (as ``se3.se3_inverse``)."""
-    (r00, r01, r02, t0), (r10, r11, r12, t1), (r20, r21, r22, t2) = T[:3].tolist()
-    return np.array([
-        [r00, r10, r20, -(r00 * t0 + r10 * t1 + r20 * t2)],
-        [r01, r11, r21, -(r01 * t0 + r11 * t1 + r21 * t2)],
-        [r02, r12, r22, -(r02 * t0 + r12 * t1 + r22 * t2)],
-        [0.0, 0.0, 0.0, 1.0]])
-
-
-def adjoint_fast(T: Array) -> Array:
-    """6x6 adjoint ``[[R, [t]x R], [0, R]]`` (as ``se3.se3_adjoint``)."""
-    (r00, r01, r02, t0), (r10, r11, r12, t1), (r20, r21, r22, t2) = T[:3].tolist()
-    # [t]x R, column j = t x R[:, j]
-    x00, x10, x20 = t1 * r20 - t2 * r10, t2 * r00 - t0 * r20, t0 * r10 - t1 * r00
-    x01, x11, x21 = t1 * r21 - t2 * r11, t2 * r01 - t0 * r21, t0 * r11 - t1 * r01
-    x02, x12, x22 = t1 * r22 - t2 * r12, t2 * r02 - t0 * r22, t0 * r12 - t1 * r02
-    return np.array([[r00, r01, r02, x00, x01, x02],
-                     [r10, r11, r12, x10, x11, x12],
-                     [r20, r21, r22, x20, x21, x22],
-                     [0.0, 0.0, 0.0, r00, r01, r02],
-                     [0.0, 0.0, 0.0, r10, r11, r12],
-                     [0.0, 0.0, 0.0, r20, r21, r22]])
 
 
 def rotation_angles_from_trace(trace: Array) -> Array:
