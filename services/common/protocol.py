@@ -775,7 +775,8 @@ class Ack(Message):
 
 @dataclass(frozen=True, kw_only=True, eq=False)
 class ServiceStats(Message):
-    """Counters of one service; ``latency_ms`` maps a stage to ``{"p50": ms, "p99": ms}``."""
+    """Counters of one service; ``latency_ms`` maps a stage to ``{"p50": ms, "p99": ms}``;
+    ``skipped`` (optional) counts valid inputs that produced no output, by reason."""
 
     SCHEMA: ClassVar[str] = "handkse.ServiceStats/1"
     service: str
@@ -785,12 +786,16 @@ class ServiceStats(Message):
     dropped: int = 0
     rejected: Mapping[str, int] = field(default_factory=dict)
     latency_ms: Mapping[str, Mapping[str, float]] = field(default_factory=dict)
+    skipped: Mapping[str, int] = field(default_factory=dict)
 
     def _fields(self) -> dict[str, Any]:
-        return {"service": self.service, "uptime_s": self.uptime_s, "received": self.received,
-                "published": self.published, "dropped": self.dropped,
-                "rejected": dict(self.rejected),
-                "latency_ms": {k: dict(v) for k, v in self.latency_ms.items()}}
+        out = {"service": self.service, "uptime_s": self.uptime_s, "received": self.received,
+               "published": self.published, "dropped": self.dropped,
+               "rejected": dict(self.rejected),
+               "latency_ms": {k: dict(v) for k, v in self.latency_ms.items()}}
+        if self.skipped:
+            out["skipped"] = dict(self.skipped)
+        return out
 
     @classmethod
     def _parse(cls, f: _Fields, envelope: dict[str, Any]) -> ServiceStats:
@@ -801,9 +806,14 @@ class ServiceStats(Message):
         for stage in latency_map.obj:
             sf = latency_map.req_map(stage)
             latency[str(stage)] = {"p50": sf.float("p50", 0.0), "p99": sf.float("p99", 0.0)}
+        skipped = {}
+        if f._get("skipped", optional=True) is not None:
+            skipped_map = f.req_map("skipped")
+            skipped = {str(k): skipped_map.int(k, 0) for k in skipped_map.obj}
         return cls(**envelope, service=f.str("service"), uptime_s=f.float("uptime_s", 0.0),
                    received=f.int("received", 0), published=f.int("published", 0),
-                   dropped=f.int("dropped", 0), rejected=rejected, latency_ms=latency)
+                   dropped=f.int("dropped", 0), rejected=rejected, latency_ms=latency,
+                   skipped=skipped)
 
 
 MESSAGE_TYPES: tuple[type[Message], ...] = (RgbdFrame, HandLandmarks, HandBody, KinematicModel,

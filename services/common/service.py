@@ -91,6 +91,7 @@ class Service:
         self.published = 0
         self.dropped = 0
         self.rejected: dict[str, int] = {}
+        self.skipped: dict[str, int] = {}  # valid inputs without output, by reason (optional)
         self.latency = LatencyLog()
         self._seq: dict[str, int] = {}
         self._events: queue.Queue[tuple[Callable[..., None], tuple[Any, ...]]] = queue.Queue(
@@ -120,7 +121,7 @@ class Service:
         return ServiceStats(service=self.name, uptime_s=time.monotonic() - self.started,
                             received=self.received, published=self.published,
                             dropped=self.dropped, rejected=dict(self.rejected),
-                            latency_ms=self.latency.summary())
+                            latency_ms=self.latency.summary(), skipped=dict(self.skipped))
 
     # --- wiring ---
 

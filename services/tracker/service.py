@@ -92,6 +92,7 @@ class TrackerNode:
         for reason, n in self.tracker.rejected.items():
             if n > before.get(reason, 0):
                 self.service.reject(reason, f"landmarks at {message.stamp_ns} ns")
+        self.service.skipped = dict(self.tracker.skipped)
         if estimate is None:
             return
         self._maybe_save(estimate)

@@ -89,4 +89,5 @@ def all_messages(seed: int = 0) -> list[p.Message]:
         p.ServiceStats(service="tracker", uptime_s=12.5, received=10, published=9, dropped=1,
                        rejected={"bad_msgpack": 2},
                        latency_ms={"step": {"p50": 0.2, "p99": 0.9}}),
+        p.ServiceStats(service="tracker", uptime_s=1.0, skipped={"no_hand": 3}),
     ]

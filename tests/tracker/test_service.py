@@ -40,6 +40,8 @@ def test_landmarks_in_hand_body_out_bad_input_counted(procs: Processes, router: 
             client_bus.put(KEYS.kinematics_model, b"not a model")
     wait_until(lambda: bodies and bodies[-1].stamp_ns == frames[-1].stamp_ns, 20,
                what="hand body of the last frame")
+    empty = dataclasses.replace(frames[-1], stamp_ns=frames[-1].stamp_ns + 1, hands=())
+    client_bus.put(KEYS.hand_landmarks, empty.to_msgpack())  # valid, but no hand: skipped
 
     stamps = {f.stamp_ns for f in frames}
     assert all(b.stamp_ns in stamps for b in bodies)  # stamps carried through unchanged
@@ -49,8 +51,12 @@ def test_landmarks_in_hand_body_out_bad_input_counted(procs: Processes, router: 
     assert last.frame_id == "camera" and np.isfinite(last.pose).all()
     assert set(np.unique(last.landmarks.status)) <= {0, 1, 2, 3}
 
-    stats = json.loads(client_bus.get(KEYS.stats("tracker") + "?format=json")[0][1])
-    assert stats["received"] == len(frames) + 3
+    def stats_now() -> dict:  # type: ignore[type-arg]
+        return dict(json.loads(client_bus.get(KEYS.stats("tracker") + "?format=json")[0][1]))
+
+    wait_until(lambda: stats_now()["received"] == len(frames) + 4, 10, what="all received")
+    stats = stats_now()
+    assert stats["skipped"] == {"no_hand": 1}
     assert stats["rejected"].get("bad_field", 0) + stats["rejected"].get("wrong_schema", 0) >= 1
     assert stats["rejected"].get("bad_msgpack", 0) >= 1
     assert stats["rejected"].get("out_of_order_stamp", 0) == 1
