@@ -114,14 +114,18 @@ def write_recording(path: str | Path, messages: Iterable[tuple[str, bytes, int]]
         return rec.count
 
 
+_SPIN_S = 0.0005  # replay spins this long before each message, sleeps before that
+
+
 def replay(messages: Iterable[RecordedMessage], publish: Callable[[str, bytes], None], *,
            rate: float = 1.0, rig: str | None = None, stop: threading.Event | None = None
            ) -> int:
     """Publish recorded messages with their original spacing scaled by ``1/rate``.
 
     ``rate=0`` publishes as fast as possible. ``rig`` remaps ``handkse/{rig}/...`` keys.
-    Returns the number of messages published. Sleeps coarsely, then spins the last 2 ms so the
-    spacing error stays well under a millisecond on an idle machine.
+    Returns the number of messages published. Sleeps, then spins the last 0.5 ms (Linux sleeps
+    overshoot by ~0.1 ms on an idle machine), so the spacing error stays well under a
+    millisecond without a publisher at 150 Hz spinning a fifth of a core.
     """
     if rate < 0:
         raise ValueError(f"replay rate must be >= 0, got {rate}")
@@ -138,8 +142,8 @@ def replay(messages: Iterable[RecordedMessage], publish: Callable[[str, bytes], 
             while (remaining := target - time.perf_counter()) > 0:
                 if stop is not None and stop.is_set():
                     return count
-                if remaining > 0.002:
-                    time.sleep(min(remaining - 0.002, 0.1))
+                if remaining > _SPIN_S:
+                    time.sleep(min(remaining - _SPIN_S, 0.1))
         publish(remap_rig(msg.key, rig) if rig else msg.key, msg.payload)
         count += 1
     return count
