@@ -162,22 +162,25 @@ def se3_adjoint(T: Array) -> Array:
     return A
 
 
+def _q_coeffs(theta_sq: float) -> tuple[float, float, float]:
+    """Coefficients ``(c1, c2, c3)`` of Barfoot's ``Q(v, w)`` at ``|w|^2 = theta_sq``."""
+    if theta_sq < _SMALL_ANGLE**2:
+        return (1.0 / 6.0 - theta_sq / 120.0, 1.0 / 24.0 - theta_sq / 720.0,
+                1.0 / 120.0 - theta_sq / 2520.0)
+    theta = math.sqrt(theta_sq)
+    s, c = math.sin(theta), math.cos(theta)
+    return ((theta - s) / (theta_sq * theta),
+            (theta_sq + 2.0 * c - 2.0) / (2.0 * theta_sq * theta_sq),
+            (2.0 * theta - 3.0 * s + theta * c) / (2.0 * theta_sq * theta_sq * theta))
+
+
 def _se3_q_block(v: Array, w: Array) -> Array:
     """Upper-right block ``Q(v, w)`` of the SE(3) left Jacobian (Barfoot, eq. 7.86)."""
     theta_sq = float(w @ w)
     V, W = skew(v), skew(w)
     WV, VW = W @ V, V @ W
     WVW = WV @ W
-    if theta_sq < _SMALL_ANGLE**2:
-        c1 = 1.0 / 6.0 - theta_sq / 120.0
-        c2 = 1.0 / 24.0 - theta_sq / 720.0
-        c3 = 1.0 / 120.0 - theta_sq / 2520.0
-    else:
-        theta = math.sqrt(theta_sq)
-        s, c = math.sin(theta), math.cos(theta)
-        c1 = (theta - s) / (theta_sq * theta)
-        c2 = (theta_sq + 2.0 * c - 2.0) / (2.0 * theta_sq * theta_sq)
-        c3 = (2.0 * theta - 3.0 * s + theta * c) / (2.0 * theta_sq * theta_sq * theta)
+    c1, c2, c3 = _q_coeffs(theta_sq)
     return (0.5 * V + c1 * (WV + VW + WVW) + c2 * (W @ WV + VW @ W - 3.0 * WVW)
             + c3 * (WVW @ W + W @ WVW))
 
@@ -386,16 +389,7 @@ def se3_left_jacobian_fast(xi: Array) -> Array:
     theta_sq = w0 * w0 + w1 * w1 + w2 * w2
     ja, jb = _jl_coeffs(theta_sq)
     J = _rotation_rows(w0, w1, w2, ja, jb, theta_sq)
-    if theta_sq < _SMALL_ANGLE_SQ:
-        c1 = 1.0 / 6.0 - theta_sq / 120.0
-        c2 = 1.0 / 24.0 - theta_sq / 720.0
-        c3 = 1.0 / 120.0 - theta_sq / 2520.0
-    else:
-        theta = math.sqrt(theta_sq)
-        sn, cs = math.sin(theta), math.cos(theta)
-        c1 = (theta - sn) / (theta_sq * theta)
-        c2 = (theta_sq + 2.0 * cs - 2.0) / (2.0 * theta_sq * theta_sq)
-        c3 = (2.0 * theta - 3.0 * sn + theta * cs) / (2.0 * theta_sq * theta_sq * theta)
+    c1, c2, c3 = _q_coeffs(theta_sq)
     s = w0 * v0 + w1 * v1 + w2 * v2
     u0, u1, u2 = w1 * v2 - w2 * v1, w2 * v0 - w0 * v2, w0 * v1 - w1 * v0
     kv, kw, k = 0.5 - 2.0 * c2 * theta_sq, (3.0 * c2 - c1) * s, 2.0 * s * (c3 * theta_sq - c1)

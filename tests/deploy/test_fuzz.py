@@ -35,7 +35,6 @@ from services.common.protocol import (
     KinematicModel,
     Message,
     ProtocolError,
-    RevoluteParams,
     RgbdFrame,
     RobotState,
     ServiceStats,
@@ -45,6 +44,7 @@ from services.synthetic.generator import generate
 from services.synthetic.replay import landmark_messages
 from tests.common import samples
 from tests.conftest import Processes, output_of, wait_until, zenoh_args
+from tests.robot_bridge.test_service import _key_model
 
 if TYPE_CHECKING:  # the detector's modules need OpenCV, which the other tests do not
     from services.detector.sources import CapturedFrame
@@ -466,18 +466,6 @@ def test_detector_survives_fuzzing_and_keeps_detecting(
 # --- robot bridge ---
 
 ROBOT = Keys("fuzzrb")
-
-
-def _key_model(stamp_ns: int) -> KinematicModel:
-    """The simulated key's true axis (identity hand-eye: camera frame = robot base frame)."""
-    from services.robot_bridge.mujoco_backend import nominal_grasp_pose
-
-    T0 = nominal_grasp_pose()
-    axis, point = T0[:3, 2], T0[:3, 3]
-    probs = {"rigid": 0.0, "prismatic": 0.0, "revolute": 1.0, "disconnected": 0.0}
-    return KinematicModel(stamp_ns=stamp_ns, type="revolute", probabilities=probs,
-                          revolute=RevoluteParams(axis=axis, point=point - (point @ axis) * axis,
-                                                  q=1.0, dq=0.0, covariance=np.zeros((7, 7))))
 
 
 def _articulate(bus: Bus, payload: bytes | None) -> ArticulateResult | str:
