@@ -148,3 +148,11 @@ def test_peek_envelope() -> None:
     msg = samples.hand_body()
     assert p.peek_envelope(msg.to_msgpack()) == ("handkse.HandBody/1", 123)
     assert p.peek_envelope(b"garbage") == (None, None)
+
+
+def test_a_required_array_sent_as_nil_is_a_bad_field() -> None:
+    doc = msgpack.unpackb(samples.hand_body().to_msgpack(), raw=False)
+    doc["pose"] = None
+    with pytest.raises(p.ProtocolError) as info:
+        p.HandBody.from_msgpack(msgpack.packb(doc, use_bin_type=True))
+    assert info.value.reason == "bad_field" and "pose" in str(info.value)

@@ -90,3 +90,21 @@ def test_router_record_replay_across_processes(procs: Processes, router: str,
     want = (msgs[-1][2] - msgs[0][2]) * 1e-9
     have = (back[-1].log_time_ns - back[0].log_time_ns) * 1e-9
     assert 0.9 * want < have < want + 0.5, (want, have)
+
+
+def test_a_stamp_outside_the_mcap_range_is_recorded_at_its_log_time(tmp_path: Path) -> None:
+    """A (bad) negative stamp must neither fail the write nor corrupt the next message."""
+    import dataclasses
+
+    from services.common.recording import McapRecorder
+
+    path = tmp_path / "bad.mcap"
+    good = samples.hand_landmarks()
+    bad = dataclasses.replace(good, stamp_ns=-5)
+    with McapRecorder(path) as recorder:
+        recorder.write("handkse/a/hand/landmarks", bad.to_msgpack(), log_time_ns=1_000)
+        recorder.write("handkse/a/hand/landmarks", good.to_msgpack(), log_time_ns=2_000)
+    back = list(read_recording(path))
+    assert [m.log_time_ns for m in back] == [1_000, 2_000]
+    assert back[0].publish_time_ns == 1_000 and back[1].publish_time_ns == good.stamp_ns
+    assert back[1].payload == good.to_msgpack()
