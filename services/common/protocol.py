@@ -15,6 +15,7 @@ This is the only module that imports msgpack.
 from __future__ import annotations
 
 import math
+import re
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, TypeVar
@@ -150,20 +151,34 @@ def _dtype(text: str) -> np.dtype[Any]:
     return dt
 
 
+# dtype strings the codec accepts: optional byte order, kind (bool, int, uint, float), item size.
+_DTYPE_TEXT = re.compile(r"[<>|=]?[biuf][1248]")
+_MAX_DIMENSIONS = 8
+_MAX_ELEMENTS = 1 << 31
+
+
 def _decode_array_map(value: Any, path: str) -> NDArray[Any]:
     if not isinstance(value, dict):
         raise ProtocolError(f"{path}: expected an array map {{dtype, shape, data}}, got "
                             f"{type(value).__name__}")
-    try:
-        dtype = np.dtype(value["dtype"])
-        shape = tuple(int(s) for s in value["shape"])
-        data = value["data"]
-    except (KeyError, TypeError, ValueError) as exc:
-        raise ProtocolError(f"{path}: malformed array map ({exc})") from exc
-    if dtype.hasobject or dtype.kind not in "biuf":
-        raise ProtocolError(f"{path}: unsupported dtype {dtype.str}")
+    missing = [k for k in ("dtype", "shape", "data") if k not in value]
+    if missing:
+        raise ProtocolError(f"{path}: malformed array map (missing {', '.join(missing)})")
+    text, shape_in, data = value["dtype"], value["shape"], value["data"]
+    # Checked as text before numpy parses it: np.dtype raises SyntaxError or TypeError on some
+    # strings and accepts structured and object types the codec does not carry.
+    if not isinstance(text, str) or len(text) > 3 or not _DTYPE_TEXT.fullmatch(text):
+        shown = text[:16] if isinstance(text, str) else type(text).__name__
+        raise ProtocolError(f"{path}: unsupported dtype {shown!r} (expected e.g. '<f8', '|u1')")
+    dtype = _dtype(text)
+    if (not isinstance(shape_in, list) or len(shape_in) > _MAX_DIMENSIONS
+            or not all(isinstance(s, int) and not isinstance(s, bool) for s in shape_in)):
+        raise ProtocolError(f"{path}: shape must be a list of at most {_MAX_DIMENSIONS} ints")
+    shape = tuple(shape_in)
     if any(s < 0 for s in shape):
         raise ProtocolError(f"{path}: negative dimension in shape {list(shape)}")
+    if math.prod(shape) > _MAX_ELEMENTS:
+        raise ProtocolError(f"{path}: shape {list(shape)} has more than {_MAX_ELEMENTS} elements")
     if not isinstance(data, bytes):
         raise ProtocolError(f"{path}: data must be bin, got {type(data).__name__}")
     expected = math.prod(shape) * dtype.itemsize
@@ -345,8 +360,16 @@ class Message:
 
     @classmethod
     def from_msgpack(cls: type[M], payload: bytes | bytearray | memoryview) -> M:
+        """Decode and validate; every failure is a :class:`ProtocolError` naming the field."""
         name = cls.__name__
-        return cls.from_obj(_unpack(payload, name), name)
+        obj = _unpack(payload, name)
+        try:
+            return cls.from_obj(obj, name)
+        except ProtocolError:
+            raise
+        except Exception as exc:  # a check this module missed: still bad input, not a crash
+            raise ProtocolError(f"{name}: invalid message ({type(exc).__name__}: "
+                                f"{str(exc)[:200]})", "bad_field") from exc
 
     @classmethod
     def from_obj(cls: type[M], obj: Any, path: str | None = None) -> M:
@@ -359,7 +382,8 @@ class Message:
         if kind != expected_kind:
             raise ProtocolError(f"{path}.schema: expected {expected_kind!r}, got {kind!r}",
                                 "wrong_schema")
-        if not version.isdigit() or int(version) != PROTOCOL_MAJOR:
+        # Length first: int() of thousands of digits raises ValueError (and costs time).
+        if not (version.isdigit() and len(version) <= 9) or int(version) != PROTOCOL_MAJOR:
             raise ProtocolError(f"{path}.schema: unknown major version in {schema!r} (this "
                                 f"build speaks version {PROTOCOL_MAJOR})", "wrong_version")
         envelope = {"seq": f.int("seq", 0), "stamp_ns": f.int("stamp_ns", 0),

@@ -156,3 +156,35 @@ def test_a_required_array_sent_as_nil_is_a_bad_field() -> None:
     with pytest.raises(p.ProtocolError) as info:
         p.HandBody.from_msgpack(msgpack.packb(doc, use_bin_type=True))
     assert info.value.reason == "bad_field" and "pose" in str(info.value)
+
+
+# Payloads an attacker found to escape ProtocolError (ValueError, SyntaxError, OverflowError,
+# TypeError from numpy and int()): each must be a ProtocolError with a reason, naming the field.
+ESCAPES = [
+    ("5000-digit version", ["schema"], "handkse.HandBody/" + "1" * 5000, "schema", "wrong_version"),
+    ("dtype of digits", ["twist"], {"dtype": "9" * 5000, "shape": [6], "data": b"\0" * 48},
+     "twist", "bad_field"),
+    ("structured dtype", ["twist"], {"dtype": "f8,f8", "shape": [3], "data": b"\0" * 48},
+     "twist", "bad_field"),
+    ("sub-array dtype", ["twist"], {"dtype": "(2)f8", "shape": [3], "data": b"\0" * 48},
+     "twist", "bad_field"),
+    ("dtype not a string", ["twist"], {"dtype": 8, "shape": [6], "data": b"\0" * 48},
+     "twist", "bad_field"),
+    ("infinite dimension", ["twist"], {"dtype": "<f8", "shape": [float("inf"), 3], "data": b""},
+     "twist", "bad_field"),
+    ("huge shape", ["twist"], {"dtype": "<f8", "shape": [2**40, 2**40], "data": b""},
+     "twist", "bad_field"),
+    ("bool dimension", ["twist"], {"dtype": "<f8", "shape": [True], "data": b"\0" * 8},
+     "twist", "bad_field"),
+    ("shape not a list", ["twist"], {"dtype": "<f8", "shape": 6, "data": b"\0" * 48},
+     "twist", "bad_field"),
+]
+
+
+@pytest.mark.parametrize(("name", "path", "value", "field", "reason"), ESCAPES,
+                         ids=[c[0] for c in ESCAPES])
+def test_malformed_payloads_are_protocol_errors(name: str, path: list[str], value: object,
+                                                field: str, reason: str) -> None:
+    with pytest.raises(p.ProtocolError, match=field) as e:
+        p.HandBody.from_msgpack(_mutate(samples.hand_body(), path, value))
+    assert e.value.reason == reason
