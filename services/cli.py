@@ -30,6 +30,7 @@ from services.common.keys import Keys, check_rig
 from services.common.protocol import Ack, KinematicModel, ServiceStats
 from services.common.recording import McapRecorder, read_recording, replay, write_recording
 from services.common.service import stop_on_signals
+from services.common.state_file import StateFileError
 
 log = logging.getLogger("handkse")
 
@@ -342,7 +343,7 @@ def main(argv: list[str] | None = None) -> int:
                         format="%(asctime)s %(name)s %(levelname)s %(message)s")
     try:
         return int(args.func(args))
-    except (BusError, ConfigError) as exc:
+    except (BusError, ConfigError, StateFileError) as exc:
         print(f"handkse {args.command}: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
