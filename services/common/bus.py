@@ -14,8 +14,10 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import math
 import os
 import threading
+import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from typing import Any
@@ -147,14 +149,40 @@ def zenoh_config(o: ZenohOptions) -> zenoh.Config:
 Callback = Callable[[str, bytes], None]
 
 
+class _RateLimitedLog:
+    """Logs one line per key per ``period_s`` with the count since the last line; the traceback
+    of each failure only at DEBUG (a flood of bad input must not write gigabytes of log)."""
+
+    def __init__(self, period_s: float = 1.0) -> None:
+        self.period_s = period_s
+        self._lock = threading.Lock()
+        self._last: dict[str, float] = {}
+        self._count: dict[str, int] = {}
+
+    def exception(self, key: str, message: str) -> None:
+        now = time.monotonic()
+        with self._lock:
+            self._count[key] = self._count.get(key, 0) + 1
+            due = now - self._last.get(key, -math.inf) >= self.period_s
+            if due:
+                self._last[key] = now
+                count, self._count[key] = self._count[key], 0
+        if due:
+            log.error("%s (%d time(s) since the last report): %s", key, count, message)
+        log.debug("%s", key, exc_info=True)
+
+
+_failures = _RateLimitedLog()
+
+
 def _guarded(name: str, fn: Callable[..., None]) -> Callable[..., None]:
     """Zenoh prints and swallows callback exceptions; log them through ``logging`` instead."""
 
     def wrapper(*args: Any) -> None:
         try:
             fn(*args)
-        except Exception:
-            log.exception("callback for %s failed", name)
+        except Exception as exc:
+            _failures.exception(f"callback for {name} failed", repr(exc))
 
     return wrapper
 
@@ -319,8 +347,8 @@ class Bus:
                     query.reply_err(str(exc).encode())
                     return
                 except Exception as exc:
-                    log.exception("queryable %s failed", key)
-                    query.reply_err(f"internal error: {exc}".encode())
+                    _failures.exception(f"queryable {key} failed", repr(exc))
+                    query.reply_err(f"internal error: {type(exc).__name__}".encode())
                     return
                 query.reply(key, answer.payload, encoding=zenoh.Encoding(answer.encoding))
             finally:

@@ -200,8 +200,10 @@ class Service:
                 try:
                     fn(*args)
                 except Exception as exc:  # a bug for one input must not end the service
+                    # Counted and logged like any rejection (once per second, with the count);
+                    # the traceback only at DEBUG, so a flood of one bad input cannot fill a disk.
                     self.reject("internal_error", repr(exc))
-                    log.exception("%s: handler failed", self.name)
+                    log.debug("%s: handler failed", self.name, exc_info=True)
             if idle is not None and time.monotonic() >= next_idle:
                 next_idle = time.monotonic() + idle_period_s
                 idle()

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import subprocess
 import sys
 import threading
@@ -100,3 +101,20 @@ def test_liveliness_token_vanishes_within_1s_after_kill(client_bus: Bus, router:
     wait_until(lambda: any(not a for _, _, a in events), 5, what="token disappears")
     t_gone = next(t for t, _, a in events if not a)
     assert t_gone - t_kill < 1.0
+
+
+def test_a_failing_queryable_is_answered_and_logged_once_a_second(
+        client_bus: Bus, caplog: pytest.LogCaptureFixture) -> None:
+    def broken(_req):  # type: ignore[no-untyped-def]
+        raise ZeroDivisionError("a bug for this input")
+
+    client_bus.declare_queryable("t1/broken", broken)
+    t0 = time.monotonic()
+    with caplog.at_level(logging.ERROR, logger="services.common.bus"):
+        for _ in range(30):
+            with pytest.raises(BusError, match="internal error: ZeroDivisionError"):
+                client_bus.get("t1/broken")
+    lines = [r for r in caplog.records if "t1/broken" in r.getMessage()]
+    # 30 failures within a few seconds: one line per second at most, each with its count.
+    assert 1 <= len(lines) <= 1 + int(time.monotonic() - t0)
+    assert all(r.exc_info is None for r in lines)
