@@ -30,6 +30,7 @@ T = TypeVar("T")
 # section name -> "module:Class" of its config dataclass (imported lazily).
 SECTIONS: dict[str, str] = {
     "zenoh": "services.common.bus:ZenohOptions",
+    "limits": "services.common.service:ServiceLimits",
     "tracker": "services.tracker.config:TrackerConfig",
     "kinematics": "services.kinematics.config:KinematicsConfig",
     "detector": "services.detector.config:DetectorConfig",

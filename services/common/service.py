@@ -1,10 +1,14 @@
 """The small runner every handkse service uses.
 
 A service is one event loop: samples from its subscriptions and control calls (``reset``) are
-queued by the bus threads and handled one at a time by :meth:`Service.run`, so service logic
-needs no locks. The runner declares the liveliness token ``handkse/{rig}/alive/{service}`` and
-the ``stats`` and ``reset`` queryables, counts what it receives, publishes and rejects, and stops
-gracefully on SIGINT/SIGTERM. A bad message is counted in ``rejected[reason]`` and logged at
+queued by the bus threads in an :class:`~services.common.inbox.Inbox` (bounded, never blocking a
+bus thread, the oldest sample dropped and counted when full) and handled one at a time by
+:meth:`Service.run`, so service logic needs no locks. A payload larger than its limit
+(:class:`ServiceLimits`) is refused on the bus thread, before it is queued.
+
+The runner declares the liveliness token ``handkse/{rig}/alive/{service}`` and the ``stats`` and
+``reset`` queryables, counts what it receives, publishes and rejects, and stops gracefully on
+SIGINT/SIGTERM. A bad message is counted in ``rejected[reason]`` and logged at
 most once per reason per second; it never stops the service.
 """
 
@@ -13,17 +17,18 @@ from __future__ import annotations
 import contextlib
 import json
 import logging
-import queue
 import signal
 import threading
 import time
 from collections import deque
 from collections.abc import Callable, Iterator
+from dataclasses import dataclass
 from typing import Any, Protocol, TypeVar
 
 import numpy as np
 
 from services.common.bus import JSON, QueryAnswer, QueryRequest
+from services.common.inbox import Inbox
 from services.common.keys import Keys
 from services.common.protocol import Ack, Message, ProtocolError, ServiceStats
 
@@ -79,11 +84,34 @@ class LatencyLog:
         return out
 
 
+@dataclass(frozen=True)
+class ServiceLimits:
+    """Input limits of every service (config section ``[limits]``).
+
+    ``queue_size``: samples waiting for the loop before the oldest is dropped (256 is about 8 s
+    of a 30 Hz stream; a service further behind than that is better off with recent data).
+    ``max_payload_bytes``: the largest accepted payload of a state message (landmarks, bodies,
+    models, requests; the largest legitimate one is a few kB). ``max_frame_payload_bytes``: the
+    largest camera frame (a 4K BGR image with 16-bit depth is about 41 MB).
+    """
+
+    queue_size: int = 256
+    max_payload_bytes: int = 1 << 20
+    max_frame_payload_bytes: int = 64 << 20
+
+    def __post_init__(self) -> None:
+        for name in ("queue_size", "max_payload_bytes", "max_frame_payload_bytes"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"limits.{name} must be at least 1, got {getattr(self, name)}")
+
+
 class Service:
     """Counters, control queryables and the event loop of one service process."""
 
-    def __init__(self, name: str, bus: BusLike, keys: Keys, queue_size: int = 10000) -> None:
+    def __init__(self, name: str, bus: BusLike, keys: Keys,
+                 limits: ServiceLimits | None = None) -> None:
         self.name = name
+        self.limits = ServiceLimits() if limits is None else limits
         self.bus = bus
         self.keys = keys
         self.started = time.monotonic()
@@ -94,8 +122,9 @@ class Service:
         self.skipped: dict[str, int] = {}  # valid inputs without output, by reason (optional)
         self.latency = LatencyLog()
         self._seq: dict[str, int] = {}
-        self._events: queue.Queue[tuple[Callable[..., None], tuple[Any, ...]]] = queue.Queue(
-            queue_size)
+        self._inbox = Inbox(self.limits.queue_size)
+        self._reject_lock = threading.Lock()  # rejections are counted on bus threads too
+        self._dropped_logged = 0
         self._last_log: dict[str, float] = {}
         self._reset_handlers: list[Callable[[], None]] = []
         bus.declare_queryable(keys.stats(name), self._answer_stats)
@@ -105,12 +134,14 @@ class Service:
 
     def reject(self, reason: str, detail: str) -> None:
         """Count a rejected input under ``reason``; log it at most once per second per reason."""
-        self.rejected[reason] = self.rejected.get(reason, 0) + 1
-        now = time.monotonic()
-        if now - self._last_log.get(reason, -1e9) >= 1.0:
-            self._last_log[reason] = now
-            log.warning("%s rejected input (%s, %d so far): %s", self.name, reason,
-                        self.rejected[reason], detail)
+        with self._reject_lock:
+            count = self.rejected[reason] = self.rejected.get(reason, 0) + 1
+            now = time.monotonic()
+            due = now - self._last_log.get(reason, -1e9) >= 1.0
+            if due:
+                self._last_log[reason] = now
+        if due:
+            log.warning("%s rejected input (%s, %d so far): %s", self.name, reason, count, detail)
 
     def next_seq(self, key: str) -> int:
         seq = self._seq.get(key, 0)
@@ -118,9 +149,11 @@ class Service:
         return seq
 
     def stats(self) -> ServiceStats:
+        with self._reject_lock:
+            rejected = dict(self.rejected)
         return ServiceStats(service=self.name, uptime_s=time.monotonic() - self.started,
                             received=self.received, published=self.published,
-                            dropped=self.dropped, rejected=dict(self.rejected),
+                            dropped=self.dropped + self.inbox_dropped(), rejected=rejected,
                             latency_ms=self.latency.summary(), skipped=dict(self.skipped))
 
     # --- wiring ---
@@ -129,8 +162,18 @@ class Service:
         self.bus.put(key, message.to_msgpack(), frame=frame)
         self.published += 1
 
-    def subscribe(self, key: str, message_type: type[M], handler: Callable[[M], None]) -> None:
-        """Decode every sample on ``key`` as ``message_type`` and hand it to ``handler`` in the loop."""
+    def inbox_dropped(self) -> int:
+        """Input samples dropped because the loop fell behind (all keys)."""
+        return sum(self._inbox.dropped().values())
+
+    def subscribe(self, key: str, message_type: type[M], handler: Callable[[M], None], *,
+                  latest: bool = False, frame: bool = False) -> None:
+        """Decode every sample on ``key`` as ``message_type`` and hand it to ``handler`` in the loop.
+
+        ``latest``: only the newest unread sample matters (a prior), so a newer one replaces it.
+        ``frame``: camera frames, with the frame payload limit.
+        """
+        limit = self.limits.max_frame_payload_bytes if frame else self.limits.max_payload_bytes
 
         def handle(_key: str, payload: bytes) -> None:
             self.received += 1
@@ -141,15 +184,25 @@ class Service:
                 return
             handler(message)
 
-        self.bus.subscribe(key, lambda k, p: self._events.put((handle, (k, p))))
+        def on_sample(k: str, payload: bytes) -> None:  # on a bus thread: never blocks
+            if len(payload) > limit:
+                self.reject("too_large", f"{len(payload)} bytes on {k} (limit {limit}, "
+                                         f"limits.max_{'frame_' if frame else ''}payload_bytes)")
+                return
+            if latest:
+                self._inbox.put_latest(k, (handle, (k, payload)))
+            else:
+                self._inbox.put(k, (handle, (k, payload)))
+
+        self.bus.subscribe(key, on_sample)
 
     def on_reset(self, handler: Callable[[], None]) -> None:
         """Run ``handler`` in the loop when the ``reset`` queryable is called."""
         self._reset_handlers.append(handler)
 
     def call_soon(self, fn: Callable[..., None], *args: Any) -> None:
-        """Run ``fn(*args)`` in the service loop."""
-        self._events.put((fn, args))
+        """Run ``fn(*args)`` in the service loop (before waiting samples; never dropped)."""
+        self._inbox.call_soon((fn, args))
 
     # --- queryables (run on bus threads; touch only thread-safe state) ---
 
@@ -192,11 +245,9 @@ class Service:
         self.bus.declare_token(self.keys.alive(self.name))
         next_idle = time.monotonic() + idle_period_s
         while not stop.is_set():
-            try:
-                fn, args = self._events.get(timeout=idle_period_s)
-            except queue.Empty:
-                fn = None
-            if fn is not None:
+            event = self._inbox.take(idle_period_s)
+            if event is not None:
+                fn, args = event
                 try:
                     fn(*args)
                 except Exception as exc:  # a bug for one input must not end the service
@@ -204,9 +255,19 @@ class Service:
                     # the traceback only at DEBUG, so a flood of one bad input cannot fill a disk.
                     self.reject("internal_error", repr(exc))
                     log.debug("%s: handler failed", self.name, exc_info=True)
-            if idle is not None and time.monotonic() >= next_idle:
+            if time.monotonic() >= next_idle:
                 next_idle = time.monotonic() + idle_period_s
-                idle()
+                self._log_drops()
+                if idle is not None:
+                    idle()
+
+    def _log_drops(self) -> None:
+        dropped = self.inbox_dropped()
+        if dropped > self._dropped_logged:
+            log.warning("%s fell behind: dropped %d oldest input samples (%d so far; "
+                        "limits.queue_size=%d)", self.name, dropped - self._dropped_logged,
+                        dropped, self.limits.queue_size)
+            self._dropped_logged = dropped
 
 
 def stop_on_signals(stop: threading.Event) -> None:

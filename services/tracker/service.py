@@ -74,7 +74,7 @@ class TrackerNode:
         self._restore()
         keys = service.keys
         service.subscribe(keys.hand_landmarks, HandLandmarks, self.on_landmarks)
-        service.subscribe(keys.kinematics_model, KinematicModel, self.on_model)
+        service.subscribe(keys.kinematics_model, KinematicModel, self.on_model, latest=True)
         service.on_reset(self.reset)
 
     def on_model(self, model: KinematicModel) -> None:
