@@ -3,7 +3,7 @@
 This is the only module that imports zenoh (1.x API). Everything else sees bytes and plain
 callbacks, so a service can be driven by an in-memory fake in unit tests.
 
-Pitfalls handled here (docs: ZENOH_NOTES.md): callbacks swallow exceptions, so every callback is
+Pitfalls handled here (docs/deployment.md#zenoh-pitfalls): callbacks swallow exceptions, so every callback is
 wrapped and logs what it caught; queries are always finalised (``query.drop()`` in ``finally``);
 client mode gets a connect retry so a service may start before its router; sessions are closed
 in ``close()``/``with``; a ``get`` that times out or finds no responder raises a clear error.
@@ -130,7 +130,7 @@ def zenoh_config(o: ZenohOptions) -> zenoh.Config:
     if not o.multicast_scouting:
         put("scouting/multicast/enabled", False)
     if o.connect:
-        # Keep retrying the router instead of failing at once (ZENOH_NOTES pitfall 8).
+        # Keep retrying the router instead of failing at once (docs/deployment.md#connect-retry).
         put("connect/timeout_ms", {"client": o.connect_timeout_ms, "peer": -1, "router": -1})
         put("connect/retry", {"period_init_ms": 200, "period_max_ms": 1000,
                               "period_increase_factor": 2})
@@ -294,7 +294,7 @@ class Bus:
         """Publish ``payload`` on ``key``.
 
         State messages (``frame=False``) use congestion control BLOCK so none is lost; camera
-        frames use DROP, since only the newest frame matters (ZENOH_NOTES pitfall 11).
+        frames use DROP, since only the newest frame matters (docs/deployment.md#congestion-control).
         """
         pub_key = (key, frame)
         pub = self._publishers.get(pub_key)

@@ -4,7 +4,7 @@ Defaults follow MediaPipe Hands' own graphs (``palm_detection_cpu``, ``hand_land
 ``hand_landmark_landmarks_to_roi``: palm score 0.5, weighted NMS at IoU 0.3, palm ROI scale 2.6
 with a shift of -0.5 box heights towards the fingers, tracking ROI scale 2.0 with shift -0.1,
 presence 0.5), the paper's Azure Kinect working distance (0.4-1.0 m) for the depth limits, and
-``/work/shared/design/DETECTOR_NOTES.md`` for the rest. Every field is a plain scalar or string so
+docs/detector.md for the rest. Every field is a plain scalar or string so
 the ``[detector]`` TOML section and ``--set detector.key=value`` can set it.
 """
 

@@ -6,7 +6,7 @@ extracted, converted to ONNX with ``tflite2onnx`` (plus a fix for the palm model
 slopes, which tflite2onnx 0.4.1 cannot lay out), every ``PRelu`` is replaced by the equivalent
 ``Relu(x) + Min(x, 0) * a`` (ORT's CPU PRelu with per-channel slopes cost half of the palm model's
 time: 1.6-1.8x faster), and each converted model is compared with the original under LiteRT
-(``ai-edge-litert``, when installed; max abs diff < 1e-3). ``DETECTOR_NOTES.md`` has the
+(``ai-edge-litert``, when installed; max abs diff < 1e-3). docs/detector.md#hand-models has the
 measurements behind each step.
 
 Cache layout (``$HANDKSE_MODELS_DIR``, else ``$XDG_CACHE_HOME/handkse/models``, else

@@ -3,8 +3,8 @@
 Both take the same input as our estimator: the detector's landmark stream of one demonstration,
 ``stamps_ns`` (N,) int64, ``points`` (N, 21, 3) [m] in the camera frame (NaN without depth) and
 ``visibility`` (N, 21), and return a :class:`~services.kinematics.metrics.JointEstimate` in the
-camera frame. Sources: ``/work/shared/design/BASELINES_AND_METRICS.md`` sections 2 (ScrewMimic)
-and 3 (Regal et al.); no code of either project was used.
+camera frame. Sources: the published descriptions, summarised in docs/evaluation.md#baselines; no
+code of either project was used.
 
 Regal-style (:func:`regal_style`)
     Regal et al. (IROS 2023) fit a screw axis to the trajectory of one tracked hand point. As in
@@ -61,7 +61,7 @@ from services.kinematics.metrics import JointEstimate, closest_point_to_origin
 
 Array = NDArray[np.float64]
 
-# Fallback visibility threshold of DETECTOR_NOTES.md sec. 5 (0.5 for visibility heuristics).
+# Visibility threshold for the heuristic scores (docs/detector.md#visibility).
 DEFAULT_VISIBILITY_THRESHOLD = 0.5
 
 

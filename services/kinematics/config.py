@@ -2,7 +2,7 @@
 
 Defaults are the ICRA-25 Table I values for the joint EKFs and OMIP's ``joint_tracker_cfg.yaml``
 (master, plus the ``wip_integrate_proprio_and_ft`` disconnected constant) for model selection; see
-``/work/shared/design/OMIP_JOINT_FILTERS.md`` sections 2, 3, 4 and 6. Every field is a plain
+docs/estimation.md#parameters and the sections it links. Every field is a plain
 ``float``/``int``/``bool``/``str`` so the ``[kinematics]`` TOML section can set it.
 
 Process-noise scales follow OMIP's dt scaling: a value ``s`` for an axis angle, a point coordinate or
@@ -10,30 +10,9 @@ the joint value ``q`` adds the variance ``s * dt**3 / 3`` per prediction of ``dt
 for the joint velocity adds ``s * dt``. Both kinds therefore have the unit ``unit**2 / s**3`` (m or
 rad), written in the field names.
 
-Departures from Table I / OMIP (each tuned on the tuning split only: valve, tension belt, window lock
-and flap latch by participants 1 and 2, 8-16 seeds; numbers are mean tangent errors there):
-
-- Axis and point process noise 100x below Table I (``prismatic_axis_noise``, ``revolute_axis_noise``
-  0.0255 instead of 2.55, ``revolute_point_noise`` 0.0003 instead of 0.3). The joint is fixed: its
-  axis and point do not drift, so their process noise only has to absorb linearisation error. Table
-  I's values let the point wander ~1 cm/sqrt(s) (~2 cm over a demonstration) and the axis ~2 deg/
-  sqrt(s), so the filter forgets all but the last second of a noisy (several degrees per frame) hand
-  pose. Tuning split: Table I 7.2 deg; this change alone 6.4, the inflation below alone 6.2, both
-  5.1. The
-  prismatic value follows by the same argument (its model is even closer to linear); the tuning
-  split has no prismatic object to check it on.
-- ``revolute_inflation_scale`` 3 instead of 1: OMIP's factor ``1 / (1 - exp(-sin(|w|/2) / s))``
-  discounts small rotations, whose deltas say little about the axis; with hand-pose noise of several
-  degrees per frame that discount must reach further (scale 1 -> 6.4 deg with a type error, 3 ->
-  5.1, 10 -> 5.0).
-- Filter start: ``revolute_min_rotation_rad`` 0.3 instead of OMIP's 0.045 and ``min_motion_sigmas``
-  4 instead of 5. A hand tracked from landmarks drifts by several degrees over its first second
-  (the body model settles, the detector's slow errors), which a 2.6 deg minimum and a purely
-  statistical test cannot tell from a turn: a revolute filter started on that drift (true q = 0)
-  never recovers its axis. A 17 deg minimum rules that out and lets the statistical threshold be
-  lower, which small turns need (16 seeds: 5 sigma with 0.045 rad 5.4 deg, one valve filter never
-  started on a 1 rad turn; 4 sigma with 0.2 / 0.3 / 0.4 rad: 4.9 / 4.9 / 4.7, no type error; 3.5
-  sigma with 0.3 rad: 5.1).
+Departures from Table I / OMIP (axis and point process noise 100x below Table I,
+``revolute_inflation_scale`` 3, filter start at 0.3 rad and 4 sigma) and their tuning-split
+evidence: docs/estimation.md#tuning-record.
 """
 
 from __future__ import annotations
@@ -51,7 +30,8 @@ class KinematicsConfig:
     # --- Prismatic EKF, state (axis tangent b1, b2 [rad], q [m], qdot [m/s]) (Table I) ---
     # P0 = s * I4 (rad^2 for the axis, m^2 for q, m^2/s^2 for qdot).
     prismatic_initial_variance: float = 3.0
-    # Q scale of each axis tangent coordinate: s * dt^3 / 3 [rad^2] (Table I: 2.55; docstring).
+    # Q scale of each axis tangent coordinate: s * dt^3 / 3 [rad^2]
+    # (Table I: 2.55; docs/estimation.md#tuning-record).
     prismatic_axis_noise_rad2_per_s3: float = 0.0255
     # Q scale of q: s * dt^3 / 3 [m^2].
     prismatic_q_noise_m2_per_s3: float = 0.7
@@ -60,19 +40,19 @@ class KinematicsConfig:
 
     # --- Revolute EKF, state (axis b1, b2 [rad], point p [m] (3), q [rad], qdot [rad/s]) ---
     revolute_initial_variance: float = 1.0
-    # Axis Q scale [rad^2/s^3] (Table I: 2.55; module docstring).
+    # Axis Q scale [rad^2/s^3] (Table I: 2.55; docs/estimation.md#tuning-record).
     revolute_axis_noise_rad2_per_s3: float = 0.0255
     # Q scale of each point coordinate (applied orthogonally to the axis): s * dt^3 / 3 [m^2]
-    # (Table I: 0.3; module docstring).
+    # (Table I: 0.3; docs/estimation.md#tuning-record).
     revolute_point_noise_m2_per_s3: float = 0.0003
     revolute_q_noise_rad2_per_s3: float = 5.1
     revolute_qdot_noise_rad2_per_s3: float = 75.0
 
-    # --- Measurement noise R = f * Sigma_z + floor * I (OMIP section 2.6, [REC] 8.6) ---
+    # --- Measurement noise R = f * Sigma_z + floor * I (docs/estimation.md#measurement-noise) ---
     # Prismatic: f = 1 / (1 - exp(-|z| / length)), |z| = displacement norm [m].
     prismatic_inflation_length_m: float = 0.03
     # Revolute: f = 1 / (1 - exp(-sin(|w| / 2) / scale)), |w| = rotation angle of the delta [rad]
-    # (OMIP: 1; module docstring).
+    # (OMIP: 1; docs/estimation.md#tuning-record).
     revolute_inflation_scale: float = 3.0
     # Both factors are clipped at this value.
     max_inflation_factor: float = 1e6
@@ -84,7 +64,7 @@ class KinematicsConfig:
     # joint that would pick an arbitrary 2 pi branch of q; the process noise grows as dt^3).
     max_prediction_dt_s: float = 0.5
 
-    # --- Filter start ([REC] section 3: no init from a near-zero delta; module docstring) ---
+    # --- Filter start (no init from a near-zero delta; docs/estimation.md#filter-start) ---
     # The prismatic filter starts once the hand origin moved this far from the reference [m].
     prismatic_min_translation_m: float = 0.01
     # The revolute filter starts once the hand rotated this much from the reference [rad]
@@ -95,7 +75,7 @@ class KinematicsConfig:
     # not drawn from noise.
     min_motion_sigmas: float = 4.0
 
-    # --- Model selection (OMIP section 4) ---
+    # --- Model selection (docs/estimation.md#model-selection) ---
     # Number of history entries sampled uniformly over the whole demonstration.
     likelihood_sample_num: int = 100
     # Fixed standard deviations of the per-sample error densities.

@@ -4,14 +4,14 @@ Input per frame: ``stamp_ns`` (int, ns), ``T_frame_hand`` (4x4 pose of the hand 
 the camera or world frame; the environment is static with pose I) and the 6x6 covariance of its left
 perturbation ``T = Exp(delta) T_hat`` (delta linear first, in ``frame``) [m^2, rad^2].
 
-Per accepted frame ([REC] loop order of OMIP section 3):
+Per accepted frame (docs/estimation.md#update-loop and the sections before it):
 
-1. Measurement (OMIP 1 with RRB = I): ``D = T(t) T(t0)^-1``, and for the prismatic filter the
-   displacement ``t(t) - t(t0)`` of the hand origin ([REC] 2.3). ``T(t0)`` is the measured reference
-   pose, the first accepted pose of the demonstration.
+1. Measurement (OMIP's with RRB = I): ``D = T(t) T(t0)^-1``, and for the prismatic filter the
+   displacement ``t(t) - t(t0)`` of the hand origin (docs/estimation.md#prismatic-filter). ``T(t0)`` is the
+   measured reference pose, the first accepted pose of the demonstration.
 2. Each started joint filter predicts once with the true ``dt`` (capped at
    ``max_prediction_dt_s`` after a loss of tracking) and corrects with
-   ``R = f Sigma + floor I`` (OMIP 2.6 factors ``f``, [REC] 8.6 floor). ``Sigma`` is the current pose's
+   ``R = f Sigma + floor I`` (OMIP's factors ``f``, plus a floor). ``Sigma`` is the current pose's
    covariance only (``Sigma(t)``, or ``G Sigma(t) G^T`` with ``G = [I, -[t]x]`` for the
    displacement): the reference pose's error is common to all measurements, so each filter carries it
    as a state with prior ``Sigma(t0)`` instead of adding ``Ad(D) Sigma(t0) Ad(D)^T`` to every R as OMIP
@@ -19,13 +19,14 @@ Per accepted frame ([REC] loop order of OMIP section 3):
    covariance is ``Sigma(t) + Sigma(t0) + floor I`` (OMIP's formula with its own prediction D = I).
    A joint filter starts (OMIP init from the current measurement) only once the hand moved at least
    ``prismatic_min_translation_m`` / rotated ``revolute_min_rotation_rad`` from the reference, and that
-   motion is at least ``min_motion_sigmas`` standard deviations of its noise ([REC] 3). While the
+   motion is at least ``min_motion_sigmas`` standard deviations of its noise. While the
    rotation is significant but still below ``revolute_min_rotation_rad``, a started prismatic filter
    alone does not make the type known: a revolute joint cannot be ruled out before its filter runs.
 3. The sample and the joint values enter the bounded history, and model selection scores the four
    types (:mod:`services.kinematics.selection`).
 
-Output canonicalisation ([REC] 5): internally the sign of an axis is fixed by the first motion (so
+Output canonicalisation (docs/estimation.md#output-canonicalisation): internally the sign of an
+axis is fixed by the first motion (so
 ``q`` starts positive and stays continuous). The published axis is flipped, for output only, so that
 its component of largest magnitude is positive (lowest index on ties); ``q`` and ``dq`` are negated
 with it and the covariance is re-expressed in :func:`~services.kinematics.filters.tangent_basis` of
@@ -375,7 +376,7 @@ class KinematicEstimator:
             z = se3_log_fast(D)
             w = z[3:]
             significant = self._significant(
-                w, Sigma[3:, 3:] + R_D @ self._Sigma0[3:, 3:] @ R_D.T)  # OMIP 1.5 block
+                w, Sigma[3:, 3:] + R_D @ self._Sigma0[3:, 3:] @ R_D.T)  # OMIP's Sigma_z, rotation block
             if significant and float(w @ w) >= cfg.revolute_min_rotation_rad ** 2:
                 self._revolute = RevoluteJoint.from_twist(cfg, z, self._Sigma0)
                 self._selector.history.backfill_revolute(self._revolute.u)

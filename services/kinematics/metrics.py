@@ -1,6 +1,6 @@
 """Evaluation metrics for estimated joints: tangent error and its companions.
 
-Definitions follow ``/work/shared/design/BASELINES_AND_METRICS.md`` section 4 (tangent error of
+Definitions follow docs/evaluation.md#tangent-error (tangent error of
 Heppert et al., IROS 2022, as used by Pfisterer et al., ICRA 2025, Eq. 9), reimplemented from
 that description (the reference code is GPL-3 and not used).
 
@@ -25,7 +25,8 @@ from numpy.typing import ArrayLike, NDArray
 Array = NDArray[np.float64]
 
 JOINT_TYPES = ("prismatic", "revolute", "rigid")
-# Below this angular speed (per unit twist magnitude) a twist counts as prismatic (section 4).
+# Below this angular speed (per unit twist magnitude) a twist counts as prismatic
+# (docs/evaluation.md#tangent-error).
 PRISMATIC_OMEGA_THRESHOLD = 0.01
 DEFAULT_NUM_SAMPLES = 100
 CONVERGENCE_THRESHOLD_DEG = 10.0
@@ -142,7 +143,7 @@ def _tangents(xi: Array, x: Array) -> Array:
 
 def gt_path_samples(xi_gt: ArrayLike, positions: ArrayLike,
                     num_samples: int = DEFAULT_NUM_SAMPLES) -> Array:
-    """Points (num_samples, 3) on the GT path covering the demonstrated range (section 4, 1-2).
+    """Points (num_samples, 3) on the GT path covering the demonstrated range (tangent error steps 1-2).
 
     ``positions`` (K, 3): observed demonstration positions (grasp/part/hand points; non-finite
     rows are dropped). Prismatic GT (``|w| < 0.01 |xi|``): ``n = v/|v|``, ``z_k = x_k . n``,
@@ -234,7 +235,7 @@ def tangent_error_from_cosines(s: Array) -> tuple[float, float]:
 
 def tangent_error_from_twists(xi_gt: ArrayLike, xi_est: ArrayLike, positions: ArrayLike,
                               num_samples: int = DEFAULT_NUM_SAMPLES) -> tuple[float, float]:
-    """Tangent error [rad] and similarity of twist ``xi_est`` against ``xi_gt`` (section 4).
+    """Tangent error [rad] and similarity of twist ``xi_est`` against ``xi_gt`` (docs/evaluation.md).
 
     Both twists (6,) are linear first and in the frame of ``positions`` (K, 3). With the raw
     cosines ``s_i`` of :func:`tangent_cosines`: if at least half of them are negative, all flip

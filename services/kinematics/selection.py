@@ -1,6 +1,6 @@
-"""Model selection over the joint hypotheses (OMIP section 4, computed in log space).
+"""Model selection over the joint hypotheses (OMIP's rules in log space; docs/estimation.md#model-selection).
 
-Structure (``/work/shared/design/OMIP_JOINT_FILTERS.md`` section 4, [REC] 8.1 and 8.4):
+Structure (docs/estimation.md#model-selection, which also lists the departures from OMIP):
 
 - History: one sample per frame, the hand displacement ``d_k = c(k) - c(t0)`` [m] (``c`` = hand origin
   in ``frame``) and the rotation ``R_k`` of the delta ``D_k = T(k) T(t0)^-1``, with the prismatic and

@@ -1,9 +1,10 @@
 """Configuration of the robot bridge (``[robot_bridge]`` TOML section).
 
 Defaults follow the ICRA-25 paper (sec. IV.C: 70 N force limit, 180 deg articulation with a
-Jacobian-transpose Cartesian impedance controller) and ROBOT_BRIDGE_NOTES.md (gains 1000 N/m and
-50 N m/rad, a 20 kN/m / 30 N m/rad compliant grasp in simulation). Every safety limit is on by
-default; a request may lower the force limit but never raise it above ``force_limit_n``.
+Jacobian-transpose Cartesian impedance controller) and docs/robot_bridge.md#gains-and-errors
+(gains 1000 N/m and 50 N m/rad, a 20 kN/m / 30 N m/rad compliant grasp in simulation). Every
+safety limit is on by default; a request may lower the force limit but never raise it above
+``force_limit_n``.
 """
 
 from __future__ import annotations

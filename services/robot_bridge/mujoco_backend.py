@@ -79,7 +79,7 @@ def solve_ik(m: mujoco.MjModel, d: mujoco.MjData, T_target: Array, q_seed: Array
     for i in range(iterations + 1):
         d.qpos[:7] = q
         mujoco.mj_kinematics(m, d)
-        mujoco.mj_comPos(m, d)  # mj_jacSite needs it (ROBOT_BRIDGE_NOTES pitfall 1)
+        mujoco.mj_comPos(m, d)  # mj_jacSite needs it (docs/robot_bridge.md#simulation)
         err[:3] = T_target[:3, 3] - d.site_xpos[site]
         err[3:] = orientation_error(T_target[:3, :3], d.site_xmat[site].reshape(3, 3))
         if float(err @ err) < tolerance**2 or i == iterations:

@@ -37,7 +37,7 @@ DQ_MAX_RAD_PER_S = np.array([2.175, 2.175, 2.175, 2.175, 2.61, 2.61, 2.61])
 # libfranka F_T_EE of the Franka Hand: 0.1034 m along the flange z, -45 deg about z.
 FLANGE_TO_TCP_M = 0.1034
 # Grasp configuration: TCP about 27 deg below horizontal, q7 near its lower limit so a +180 deg
-# turn about the approach axis fits in joint 7's range (ROBOT_BRIDGE_NOTES section 2).
+# turn about the approach axis fits in joint 7's range (docs/robot_bridge.md#grasp-configuration).
 Q_GRASP_RAD = np.array([0.0, -0.3, 0.0, -2.4, 0.0, 3.3, -2.35])
 
 # Menagerie panda.xml: (name, pos, quat wxyz, mass, CoM, fullinertia Ixx Iyy Izz Ixy Ixz Iyz, range)

@@ -50,7 +50,7 @@ _DYNAMICS: dict[str, dict[str, float]] = {
     "window_lock": {"armature": 2e-3},
     "bolt": {"armature": 0.2, "damping": 2.0, "frictionloss": 1.0},
 }
-SECONDS_PER_HALF_TURN = 6.0      # 180 deg in 6 s (ROBOT_BRIDGE_NOTES)
+SECONDS_PER_HALF_TURN = 6.0      # 180 deg in 6 s (docs/robot_bridge.md#grasp-configuration)
 PRISMATIC_SPEED_M_PER_S = 0.02   # mean speed of a prismatic articulation
 MIN_DURATION_S = 2.0
 

@@ -12,7 +12,7 @@ Intrinsics
     undistorted image).
 
 The detector is simulated the way the real pipeline observes a hand (paper section III.A and
-``DETECTOR_NOTES.md``): a 2-D landmark per joint (pixel), the registered depth read at that pixel,
+docs/detector.md#pipeline): a 2-D landmark per joint (pixel), the registered depth read at that pixel,
 back-projection ``X = z K^-1 [u, v, 1]``. Every number below was fixed from the cited sources
 before any estimator was run on the data; none is tuned.
 

@@ -5,7 +5,7 @@ wrist towards the middle-finger MCP (distal), **y** towards the thumb (radial), 
 (dorsal, out of the back of the hand). Only right hands are generated; flexion bends fingers
 towards -z (the palm side).
 
-Landmark order is MediaPipe's (``/work/shared/design/PROTOCOL.md``): 0 wrist; thumb 1 CMC, 2 MCP,
+Landmark order is MediaPipe's (docs/protocol.md, HandLandmarks): 0 wrist; thumb 1 CMC, 2 MCP,
 3 IP, 4 tip; index 5-8, middle 9-12, ring 13-16, pinky 17-20 (MCP, PIP, DIP, tip).
 
 Bone lengths

@@ -1,4 +1,4 @@
-"""Hand-body level: an EKF on SE(3) x R^6 with three motion models (paper §III.B, OMIP §7.6).
+"""Hand-body level: EKF on SE(3) x R^6, three motion models (paper §III.B; docs/estimation.md#hand-body-ekf).
 
 State: pose ``T = T_frame_body`` (4x4) and left (spatial) twist ``xi = [v, w]`` (linear first,
 m/s and rad/s, in the tracking frame) with ``T(t + dt) = Exp(dt xi) T(t)`` under constant
@@ -7,7 +7,7 @@ perturbation) and ``xi = xi_hat + epsilon``; ``P`` is its 12x12 covariance, in t
 ``P0`` and ``Q`` (Table I's ``P0_rb``, ``Q_rb``) are hand-centred (translation and rotation of the
 hand about its own origin) and carried into this error state with ``Ad(T)`` (:func:`body_to_frame`).
 
-Motion models, all predicted from the same posterior (OMIP §7.2):
+Motion models, all predicted from the same posterior (docs/estimation.md#motion-models):
 
 - ``constant_velocity``: ``T_p = Exp(dt xi) T``, ``xi_p = xi``,
   ``F = [[Ad(Exp(dt xi)), dt J_l(dt xi)], [0, I]]``, ``P_p = F P F' + Q``.
@@ -32,7 +32,8 @@ joint's share and leaves process noise to the caller). The process noise ``Q`` t
 adds alike is left out of the comparison: Table I's is ~3 cm and 3 deg per frame (in the
 physical units of ``TrackerConfig.internal``), and inside ``S`` it would drown every difference
 between the predicted means (the choice would follow noise). This is OMIP's choice (predicted
-feature positions against the measurements, §7.3) made probabilistic. The correction then starts
+feature positions against the measurements; docs/estimation.md#motion-model-choice) made
+probabilistic. The correction then starts
 from the winner's full ``P_p``. All covariances are physical (m^2, rad^2; ``TrackerConfig.
 internal``), so a kinematic prediction's ``Sigma_k`` and ``R`` are on the same scale; Table I's
 large velocity noise makes ``static`` win most frames of a slow hand, ``constant_velocity``

@@ -1,6 +1,6 @@
 """Configuration of the hand tracker: landmark KFs, weighted RANSAC and the hand-body EKF.
 
-The Table-I fields keep the ICRA-25 paper's values (``helping-hand-kse-icra2025.tex``); the
+The Table-I fields keep the ICRA-25 paper's values (Pfisterer et al., Table I); the
 physical terms below them are ours (what the paper leaves open), each with its reason.
 
 Units and dt-scaling of Table I
@@ -43,27 +43,25 @@ Physical terms (beyond Table I)
 - ``articulation_std_rad``: the body model holds the hand rigid, but only the palm is; fingers
   flex by a few degrees while holding an object. ``R_rb = s_k P_lm + a_k I`` adds each
   landmark's variance from an independent flexion of this std at every joint between it and the
-  palm (``landmarks.articulation_variances``). 0.15 rad (~9 deg) of grip adjustment per joint;
-  tuning split (8 seeds): 0.08 -> 5.6 deg mean tangent error, 0.15 -> 5.1, 0.25 -> 5.1.
+  palm (``landmarks.articulation_variances``). 0.15 rad (~9 deg) of grip adjustment per joint.
 - ``depth_variance_factor``: anisotropic ``R_lm`` about the viewing ray (``landmarks.
   ray_measurement_covariances``). The depth read at a correctly detected fingertip is precise
   (mm-level skin surface), but a detection a few pixels off a thin finger reads the background
   or a mixed pixel, cm behind: a mixture whose spread along the ray exceeds the lateral one,
-  though not by much once the gates remove the gross outliers. 2 (along-ray variance twice the
-  lateral) on the tuning split (16 seeds): 1 -> 5.6 deg mean / 4.4 median tangent error, 2 ->
-  4.9 / 4.2, 4 -> 5.6 / 4.4.
+  though not by much once the gates remove the gross outliers: 2 (along-ray variance twice the
+  lateral).
 - ``template_memory_frames``, ``template_candidate_frames``: the body model (landmark
   coordinates in the body frame) is refined from every accepted frame and completed with the
   landmarks that were not RANSAC inliers at initialisation (``HandTracker._refine_template``);
   a model from a 5-frame window carries that window's (slowly varying) detector error forever.
-  Tuning split: per-frame rotation error 3.7 -> 3.1 deg RMS per axis.
 - ``max_correlation_factor``: the published covariance is inflated by the measured
   frame-to-frame correlation of the fit residuals (``HandTracker.correlation_factor``, typically
   2.5-4.5 on the synthetic data): the kinematic filters treat successive poses as independent.
-  Tuning split: 22 -> 10 deg mean tangent error before the other changes.
+
+Tuning-split evidence for each physical term: docs/estimation.md#tuning-record.
 
 Body-EKF blocks are ordered (translation, rotation, linear velocity, angular velocity), our
-reading of Table I's ``P0_rb``/``Q_rb`` (OMIP_JOINT_FILTERS.md §7.6), and are hand-centred:
+reading of Table I's ``P0_rb``/``Q_rb`` (docs/estimation.md#hand-body-ekf), and are hand-centred:
 noise of the hand about its own origin, carried into the tracking frame with ``Ad(T)``.
 """
 

@@ -15,10 +15,11 @@ from the first to the last frame of that window:
 With the ablation (uniform ``R_rb``) the sampling and the residual weights are uniform.
 
 Hand body frame (:func:`initial_body`): origin at the centroid of the inlier landmarks at the
-last window frame, axes parallel to the tracking frame (OMIP's convention, OMIP_JOINT_FILTERS.md
-§0). Why not a palm frame: it would need particular landmarks (the wrist is excluded, MCPs can be
-occluded or outliers), while this one exists for any inlier set; the joint parameters estimated
-downstream are expressed in the reference frame and do not depend on the body frame (§1.3); and a
+last window frame, axes parallel to the tracking frame (OMIP's convention;
+docs/estimation.md#hand-body-frame). Why not a palm frame: it would need particular landmarks (the
+wrist is excluded, MCPs can be occluded or outliers), while this one exists for any inlier set; the
+joint parameters estimated downstream are expressed in the reference frame and do not depend on the
+body frame (docs/estimation.md#joint-measurement); and a
 centroid origin decorrelates the translation and rotation blocks of the pose covariance. Each
 inlier's body-frame coordinates are fixed at initialisation (averaged over the window after
 aligning every frame to the last one, which divides their noise by up to sqrt(window)).

@@ -1,5 +1,5 @@
 """The deployment's mutual TLS: the router and client configs of ``docker/zenoh/`` with
-certificates made by the README's ``openssl`` commands, on a loopback TLS endpoint."""
+certificates made by the ``openssl`` commands of docs/deployment.md, on a loopback TLS endpoint."""
 
 from __future__ import annotations
 
@@ -27,7 +27,7 @@ def _openssl(tls: Path, *args: str) -> None:
 
 
 def _certificates(tls: Path, ca: str = "ca") -> None:
-    """A CA, a router certificate for 127.0.0.1 and a client certificate (the README's steps)."""
+    """A CA, a router certificate for 127.0.0.1 and a client certificate (the steps of docs/deployment.md)."""
     days = ("-days", "30")
     _openssl(tls, "req", "-x509", "-newkey", "rsa:2048", "-nodes", *days, "-subj", f"/CN={ca}",
              "-keyout", f"{ca}-key.pem", "-out", f"{ca}.pem")

@@ -1,4 +1,4 @@
-"""Properties of the tangent error and its companion metrics (BASELINES_AND_METRICS.md sec. 4)."""
+"""Properties of the tangent error and its companion metrics (docs/evaluation.md#tangent-error)."""
 
 from __future__ import annotations
 

@@ -62,7 +62,7 @@ def _random_history(rng: np.random.Generator, sel: ModelSelector, n: int) -> tup
 
 def _reference_scores(sel: ModelSelector, pri: PrismaticJoint, rev: RevoluteJoint, hand: Array,
                       c0: Array) -> Array:
-    """OMIP section 4 straight from the filters' per-sample errors."""
+    """Model selection (docs/estimation.md#model-selection) straight from the filters' per-sample errors."""
     cfg = sel.config
     h = sel.history
     idx = h.sample_indices(cfg.likelihood_sample_num)

@@ -133,7 +133,10 @@ def test_axis_error_beyond_70_newtons_aborts_and_the_arm_stops() -> None:
 
 
 def test_mis_estimated_key_axis_aborts_on_wrist_torque() -> None:
-    """A key's force barely reacts to axis tilt; the wrist torque catches it (notes, sec. 2)."""
+    """A key's force barely reacts to axis tilt; the wrist torque catches it.
+
+    See docs/robot_bridge.md#gains-and-errors.
+    """
     be = MujocoBackend(preset_object("key"))
     ex = _run(be, _plan(be, math.pi, 6.0, tilt_deg=40.0))
     assert not ex.success and ex.reason in ("torque_limit", "torque_saturation")

@@ -1,6 +1,7 @@
 """OMIP joint filters: rigid, prismatic and revolute EKFs and the disconnected hypothesis.
 
-Spec: ``/work/shared/design/OMIP_JOINT_FILTERS.md`` sections 1, 2, 5 and 8, with every [REC] fix.
+Spec: docs/estimation.md#joint-measurement and the filter sections after it, with every departure
+from OMIP.
 One module per joint; :mod:`.geometry` holds the shared pure functions.
 
 Frames and conventions: every quantity lives in the reference frame ``frame`` (camera or world; the
@@ -10,7 +11,8 @@ inv(T_frame_hand(t0))`` (4x4), or, for the prismatic filter, the displacement of
 Covariances are of left perturbations ``T = Exp(d) T_hat`` in ``frame``; twists are linear first
 ``(v, w)``; metres, radians, seconds.
 
-Axis error state ([REC] 8.2): a unit axis is a nominal vector ``u`` plus a 2-DOF tangent-plane error
+Axis error state (docs/estimation.md#axis-error-state): a unit axis is a nominal vector ``u``
+plus a 2-DOF tangent-plane error
 ``b`` in an orthonormal basis ``B = [t1 t2]`` (3x2) of the plane orthogonal to ``u``:
 ``u(b) = Exp(u x (B b)) u``, so ``du/db = B`` at ``b = 0``. After each correction ``b`` is folded into
 ``u`` and ``B`` is rotated along (parallel transport): no spherical-coordinate singularity at the poles.

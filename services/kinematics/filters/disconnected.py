@@ -1,4 +1,4 @@
-"""Disconnected hypothesis (OMIP 2.5): no state and no prediction."""
+"""Disconnected hypothesis (docs/estimation.md#rigid-and-disconnected): no state and no prediction."""
 
 from __future__ import annotations
 

@@ -252,7 +252,7 @@ def revolute_measurement_jacobian(u: Array, p: Array, B: Array, q: float) -> tup
 
 
 def prismatic_noise_inflation(displacement_norm_m: float, config: KinematicsConfig) -> float:
-    """OMIP 2.6 prismatic factor ``f = 1 / (1 - exp(-|z| / L))``, clipped at the configured max."""
+    """OMIP's prismatic factor ``f = 1 / (1 - exp(-|z| / L))``, clipped at the configured max."""
     denom = -math.expm1(-displacement_norm_m / config.prismatic_inflation_length_m)
     if denom * config.max_inflation_factor <= 1.0:
         return config.max_inflation_factor
@@ -260,7 +260,7 @@ def prismatic_noise_inflation(displacement_norm_m: float, config: KinematicsConf
 
 
 def revolute_noise_inflation(rotation_angle_rad: float, config: KinematicsConfig) -> float:
-    """OMIP 2.6 revolute factor ``f = 1 / (1 - exp(-sin(|w| / 2) / s))``, clipped at the max.
+    """OMIP's revolute factor ``f = 1 / (1 - exp(-sin(|w| / 2) / s))``, clipped at the max.
 
     ``|w|`` is the rotation angle of the measured delta in [0, pi]; the factor inflates R near 0
     (and so near 2 pi, where the delta is again close to I).
@@ -273,7 +273,7 @@ def revolute_noise_inflation(rotation_angle_rad: float, config: KinematicsConfig
 
 
 def inflated_noise(Sigma_z: Array, factor: float, floor: float) -> Array:
-    """Measurement covariance ``R = f Sigma_z + floor I`` (OMIP 2.6 with the [REC] 8.6 floor)."""
+    """Measurement covariance ``R = f Sigma_z + floor I`` (docs/estimation.md#measurement-noise)."""
     return factor * Sigma_z + floor * np.eye(len(Sigma_z))
 
 

@@ -1,4 +1,4 @@
-"""Prismatic joint EKF (OMIP 2.3 with [REC] 2.3 and 8.2, plus a reference-offset state)."""
+"""Prismatic joint EKF (OMIP's, with the changes in docs/estimation.md#prismatic-filter)."""
 
 from __future__ import annotations
 
@@ -29,11 +29,12 @@ class PrismaticJoint:
     Nominal state: unit axis ``u`` (3,), its tangent basis ``B`` (3x2), joint value ``q`` [m], joint
     velocity ``qdot`` [m/s], and the offset ``o`` (3,) [m] of the hand position at q = 0 from the
     measured reference position. Error state and covariance ``P`` (7x7), in the order
-    ``(b1, b2, q, qdot, o1, o2, o3)``, with ``u(b) = Exp(u x (B b)) u`` ([REC] 8.2).
+    ``(b1, b2, q, qdot, o1, o2, o3)``, ``u(b) = Exp(u x (B b)) u`` (docs/estimation.md#axis-error-state).
 
     Measurement ``z`` (3,): displacement of the hand origin from the reference pose, in ``frame``
-    [m] ([REC] 2.3: OMIP strips the rotation of the delta instead, which is exact only for a
-    camera-aligned hand frame). Model ``h(x) = q u + o``, ``H = [q B, u, 0, I3]`` (3x7).
+    [m] (OMIP strips the rotation of the delta instead, which is exact only for a camera-aligned
+    hand frame; docs/estimation.md#prismatic-filter). Model ``h(x) = q u + o``,
+    ``H = [q B, u, 0, I3]`` (3x7).
 
     Why ``o``: every measurement is relative to the same measured reference pose, so that pose's
     error is common to all of them. OMIP adds it to each frame's R as if it were independent, which
@@ -84,7 +85,7 @@ class PrismaticJoint:
         return F
 
     def process_noise(self, dt: float) -> Array:
-        """Q (7x7): ``diag(sa, sa, sq) dt^3 / 3``, ``sqd dt``, 0 for ``o`` (OMIP 2.1 scaling)."""
+        """Q (7x7): ``diag(sa, sa, sq) dt^3 / 3``, ``sqd dt``, 0 for ``o`` (OMIP's dt scaling)."""
         c = dt * dt * dt / 3.0
         Q = np.zeros((7, 7))
         Q[0, 0] = Q[1, 1] = self._sa * c
@@ -173,7 +174,7 @@ class PrismaticJoint:
 
     def history_errors(self, d: Array, R_flat: Array, trace: Array,
                        q: Array) -> tuple[Array, Array]:
-        """OMIP 4 errors of samples against this joint at the joint values ``q`` (m,).
+        """OMIP's model-selection errors of samples against this joint at the joint values ``q`` (m,).
 
         ``d`` (m,3) hand displacements [m]; ``R_flat`` (m,9), ``trace`` (m,) the delta rotations.
         The hypothesis displaces the hand by ``o + q_j u`` without rotating it:

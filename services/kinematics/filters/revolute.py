@@ -1,4 +1,4 @@
-"""Revolute joint EKF (OMIP 2.4 with [REC] 5 and 8.2, plus a reference-error state)."""
+"""Revolute joint EKF (OMIP's, with the changes in docs/estimation.md#revolute-filter)."""
 
 from __future__ import annotations
 
@@ -40,20 +40,20 @@ class RevoluteJoint:
 
     Nominal state: unit axis ``u`` (3,) with its right-handed tangent basis ``B = [t1 t2]`` (3x2,
     ``t2 = u x t1``), point ``p`` (3,) [m] on the axis with ``p . u = 0`` (the point closest to the
-    frame origin, [REC] 5), joint value ``q`` [rad] (unbounded, right-handed about ``u``), ``qdot``
+    frame origin), joint value ``q`` [rad] (unbounded, right-handed about ``u``), ``qdot``
     [rad/s], and the reference correction ``E`` (4x4): the estimated true hand pose at q = 0 is
     ``E @ T_ref_measured``.
 
     Error state and covariance ``P`` (12x12), order ``(b1, b2, c1, c2, q, qdot, e1..e6)``:
-    ``u(b) = Exp(u x (B b)) u`` ([REC] 8.2); ``p(c) = p + B c``, a 2-D point error in the plane
-    orthogonal to the axis (the [REC] 5 alternative to projecting a 3-D one; after an axis update
+    ``u(b) = Exp(u x (B b)) u``; ``p(c) = p + B c``, a 2-D point error in the plane
+    orthogonal to the axis (instead of projecting a 3-D one; after an axis update
     ``p`` is re-projected onto the new plane, a change along ``u`` that ``h`` does not see);
     ``E = Exp(e) E_hat`` (left perturbation, linear first). The published 7x7 covariance of
     ``(b1, b2, px, py, pz, q, qdot)`` is mapped from the leading 6x6 block (``p = B c``).
 
     Measurement ``z``: the delta ``D = T(t) T_ref_measured^-1`` (4x4) with the current pose's
     covariance ``R`` (6x6, left perturbation in ``frame``). Model ``D = Exp(h) E`` with
-    ``h = q (p x u, u)``. Innovation on the group ([REC] 5): ``y = log(D (Exp(h) E)^-1)``, so ``q``
+    ``h = q (p x u, u)``. Innovation on the group: ``y = log(D (Exp(h) E)^-1)``, so ``q``
     passes pi and 2 pi continuously and ``qdot`` keeps its sign. ``H`` (6x12): see
     :func:`~services.kinematics.filters.geometry.revolute_measurement_jacobian`.
 
@@ -113,7 +113,7 @@ class RevoluteJoint:
 
     def process_noise(self, dt: float) -> Array:
         """Q (12x12): axis ``sa``, point ``sp``, q ``sq`` (all times ``dt^3/3``), qdot ``sqd dt``,
-        0 for ``E`` (OMIP 2.1 scaling; the point noise lies in the plane orthogonal to the axis)."""
+        0 for ``E`` (OMIP's dt scaling; the point noise lies in the plane orthogonal to the axis)."""
         c = dt * dt * dt / 3.0
         Q = np.zeros((12, 12))
         Q[0, 0] = Q[1, 1] = self._sa * c
@@ -209,7 +209,7 @@ class RevoluteJoint:
 
     def history_errors(self, d: Array, R_flat: Array, trace: Array, q: Array,
                        reference_position: Array) -> tuple[Array, Array]:
-        """OMIP 4 errors of samples against this joint at the joint values ``q`` (m,).
+        """OMIP's model-selection errors of samples against this joint at the joint values ``q`` (m,).
 
         ``d`` (m,3) hand displacements from ``reference_position`` ``c0`` (3,) [m]; ``R_flat`` (m,9)
         row-major delta rotations (``trace`` unused here). The hypothesis puts the hand at

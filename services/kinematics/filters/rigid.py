@@ -1,4 +1,4 @@
-"""Rigid joint (OMIP 2.2): no state; the hand does not move relative to the reference."""
+"""Rigid joint (OMIP's): no state; the hand does not move relative to the reference."""
 
 from __future__ import annotations
 
@@ -54,7 +54,7 @@ class RigidJoint:
     @staticmethod
     def history_errors(d: Array, R_flat: Array, trace: Array,
                        q: Array | None = None) -> tuple[Array, Array]:
-        """OMIP 4 errors of samples against "no motion": ``e_t = |d_j|``, ``e_r = angle(R_j)``.
+        """OMIP's selection errors of samples against "no motion": ``e_t = |d_j|``, ``e_r = angle(R_j)``.
 
         ``d`` (m,3) hand displacements from the reference [m], ``R_flat`` (m,9) the delta
         rotations row-major, ``trace`` (m,) their traces.
