@@ -15,7 +15,7 @@ This is the only module that imports msgpack.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, TypeVar
 
@@ -819,8 +819,3 @@ class ServiceStats(Message):
 MESSAGE_TYPES: tuple[type[Message], ...] = (RgbdFrame, HandLandmarks, HandBody, KinematicModel,
                                             RobotState, ArticulateRequest, ArticulateResult,
                                             Ack, ServiceStats)
-
-
-def decoder(cls: type[M]) -> Callable[[bytes], M]:
-    """A ``bytes -> message`` function for one message type (for subscriptions)."""
-    return cls.from_msgpack

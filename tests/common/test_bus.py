@@ -9,7 +9,16 @@ import time
 
 import pytest
 
-from services.common.bus import Bus, BusError, NoResponder, QueryAnswer, QueryRejected, QueryTimeout
+from services.common.bus import (
+    Bus,
+    BusError,
+    NoResponder,
+    QueryAnswer,
+    QueryRejected,
+    QueryTimeout,
+    ZenohOptions,
+    wait_for_services,
+)
 from services.common.keys import Keys
 from services.common.processes import child_env
 from services.common.protocol import HandLandmarks, ServiceStats
@@ -100,3 +109,14 @@ def test_liveliness_token_vanishes_within_1s_after_kill(client_bus: Bus, router:
     wait_until(lambda: any(not a for _, _, a in events), 5, what="token disappears")
     t_gone = next(t for t, _, a in events if not a)
     assert t_gone - t_kill < 1.0
+
+
+def test_wait_for_services_sees_tokens_and_names_the_missing(client_bus: Bus, router: str) -> None:
+    options = ZenohOptions(mode="client", connect=(router,), multicast_scouting=False)
+    with Bus(options) as other:
+        other.declare_token(KEYS.alive("tracker"))
+        wait_for_services(client_bus, KEYS, ["tracker"], timeout=20.0)  # returns: token seen
+        with pytest.raises(BusError, match="not alive after") as err:
+            wait_for_services(client_bus, KEYS, ("tracker", "kinematics"), timeout=0.3)
+    assert KEYS.alive("kinematics") in str(err.value)
+    assert KEYS.alive("tracker") not in str(err.value)  # only what is missing is named
