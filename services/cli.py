@@ -24,6 +24,7 @@ from services.common.bus import (
     ZenohOptions,
     add_zenoh_arguments,
     options_from_args,
+    wait_for_services,
 )
 from services.common.config import SECTIONS, ConfigError, section_from_args, to_toml
 from services.common.keys import Keys, check_rig
@@ -57,19 +58,6 @@ def zenoh_options(args: argparse.Namespace) -> ZenohOptions:
 
 def open_bus(args: argparse.Namespace) -> Bus:
     return Bus(zenoh_options(args))
-
-
-def wait_for_services(bus: Bus, keys: Keys, services: list[str], timeout: float) -> None:
-    """Block until every named service's liveliness token is visible."""
-    deadline = time.monotonic() + timeout
-    wanted = {keys.alive(s) for s in services}
-    while True:
-        missing = wanted - set(bus.alive(keys.alive_all, timeout=0.5))
-        if not missing:
-            return
-        if time.monotonic() > deadline:
-            raise BusError(f"services not alive after {timeout:.0f} s: {sorted(missing)}")
-        time.sleep(0.05)
 
 
 # --- commands ---
@@ -331,7 +319,7 @@ MODULE_COMMANDS: list[tuple[str, str, str]] = [
     ("models", "services.detector.models", "prepare or show the ONNX hand models"),
     ("robot-bridge", "services.robot_bridge.service",
      "run the robot bridge (MuJoCo simulation or a real Panda)"),
-    ("robot-trials", "services.robot_bridge.trials",
+    ("robot-trials", "services.evaluation.robot_trials",
      "Table III in simulation: articulate key and window lock along each method's estimates"),
 ]
 

@@ -12,32 +12,19 @@ import argparse
 import tempfile
 import threading
 import time
-from collections.abc import Sequence
 from pathlib import Path
 
-import numpy as np
-
-from services.common.bus import Bus, BusError, ZenohOptions
+from services.common.bus import Bus, ZenohOptions, wait_for_services
 from services.common.keys import Keys
 from services.common.processes import ProcessGroup, free_tcp_endpoint
 from services.common.protocol import KinematicModel
 from services.common.recording import replay
-from services.evaluation.pipeline import joint_estimate
-from services.kinematics.metrics import JointEstimate, tangent_error
+from services.evaluation.metrics import JointEstimate
+from services.evaluation.pipeline import demo_tangent_error_deg, joint_estimate
 from services.synthetic.generator import Demonstration, generate
 from services.synthetic.replay import demonstration_recording
 
 SERVICES = ("tracker", "kinematics")
-
-
-def truth_of(demo: Demonstration) -> JointEstimate:
-    joint = demo.truth.joint
-    return JointEstimate(type=joint.type, axis=np.array(joint.axis), point=np.array(joint.point))
-
-
-def demo_tangent_error_deg(model: KinematicModel, demo: Demonstration) -> float:
-    positions = demo.truth.grasp_points
-    return float(np.degrees(tangent_error(truth_of(demo), joint_estimate(model), positions)))
 
 
 def _progress_line(model: KinematicModel, demo: Demonstration, t: float) -> str:
@@ -50,7 +37,7 @@ def _progress_line(model: KinematicModel, demo: Demonstration, t: float) -> str:
 
 def print_comparison(model: KinematicModel, demo: Demonstration) -> float:
     """Print the final model beside the ground truth; returns the tangent error in degrees."""
-    truth = truth_of(demo)
+    truth = JointEstimate.from_joint(demo.truth.joint)
     est = joint_estimate(model)
     err = demo_tangent_error_deg(model, demo)
     fmt = lambda v: "[" + ", ".join(f"{x:+.3f}" for x in v) + "]"  # noqa: E731
@@ -85,7 +72,7 @@ def run_demo(object_name: str = "key", participant: int = 3, seed: int = 0, rate
     with ProcessGroup(workdir) as group:
         group.start_pipeline(endpoint, rig, SERVICES)
         with Bus(options) as bus:
-            _wait_alive(bus, keys, SERVICES, 60.0)
+            wait_for_services(bus, keys, SERVICES, 60.0)
             bus.get(keys.reset("kinematics"))  # a fresh demonstration even with an old state file
             bus.get(keys.reset("tracker"))
             latest: list[KinematicModel] = []
@@ -110,15 +97,6 @@ def run_demo(object_name: str = "key", participant: int = 3, seed: int = 0, rate
         sim = articulate_demonstration(final, demo)
         print(format_result(sim.result, final.type))
     return error
-
-
-def _wait_alive(bus: Bus, keys: Keys, services: Sequence[str], timeout: float) -> None:
-    deadline = time.monotonic() + timeout
-    wanted = {keys.alive(s) for s in services}
-    while wanted - set(bus.alive(keys.alive_all, timeout=0.5)):
-        if time.monotonic() > deadline:
-            raise BusError(f"services did not start within {timeout:.0f} s: {sorted(wanted)}")
-        time.sleep(0.1)
 
 
 def _wait_settled(latest: list[KinematicModel], quiet_s: float = 1.0, timeout: float = 20.0

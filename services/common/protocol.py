@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import math
 import re
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, TypeVar
 
@@ -843,8 +843,3 @@ class ServiceStats(Message):
 MESSAGE_TYPES: tuple[type[Message], ...] = (RgbdFrame, HandLandmarks, HandBody, KinematicModel,
                                             RobotState, ArticulateRequest, ArticulateResult,
                                             Ack, ServiceStats)
-
-
-def decoder(cls: type[M]) -> Callable[[bytes], M]:
-    """A ``bytes -> message`` function for one message type (for subscriptions)."""
-    return cls.from_msgpack

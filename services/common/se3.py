@@ -11,7 +11,9 @@ Conventions (the same everywhere in handkse):
   (atan2 of the half angle), so it is stable near 0 and near pi, where ``1/sin`` forms are not.
 
 Lengths are metres, angles radians. Functions take and return numpy arrays and do not check
-their inputs; callers at module boundaries validate.
+their inputs; callers at module boundaries validate. :func:`skew_batch` and :func:`so3_exp` also
+take stacks ``(..., 3)`` of vectors. This module is the one home of ``[v]x`` and Rodrigues'
+formula; rigid fits of point sets are in :mod:`services.common.kabsch`.
 
 The ``*_fast`` functions compute the same maps for one input on Python floats, with the same
 small-angle branches: a few microseconds where a dozen tiny numpy operations take tens, for
@@ -38,8 +40,26 @@ def skew(v: Array) -> Array:
     return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
 
 
+# [v]x flattened row-major is ``v @ _SKEW_MAP``: rows v0, v1, v2; columns the nine entries.
+_SKEW_MAP = np.zeros((3, 9))
+_SKEW_MAP[2, 1] = _SKEW_MAP[1, 6] = _SKEW_MAP[0, 5] = -1.0
+_SKEW_MAP[1, 2] = _SKEW_MAP[2, 3] = _SKEW_MAP[0, 7] = 1.0
+
+
+def skew_batch(v: Array) -> Array:
+    """``[v]x`` for a stack of 3-vectors: (..., 3) -> (..., 3, 3) (as :func:`skew`)."""
+    out: Array = (v @ _SKEW_MAP).reshape(*v.shape[:-1], 3, 3)
+    return out
+
+
 def so3_exp(w: Array) -> Array:
-    """Rotation matrix of the rotation vector ``w`` (Rodrigues' formula)."""
+    """Rotation matrix of the rotation vector ``w`` (Rodrigues' formula).
+
+    ``w`` (3,) gives (3, 3); a stack (..., 3) gives (..., 3, 3), each as for a single vector
+    (to round-off: the stack is evaluated with array operations).
+    """
+    if w.ndim > 1:
+        return _so3_exp_stack(w)
     theta_sq = float(w @ w)
     W = skew(w)
     if theta_sq < _SMALL_ANGLE**2:
@@ -50,6 +70,19 @@ def so3_exp(w: Array) -> Array:
         a = math.sin(theta) / theta
         b = (1.0 - math.cos(theta)) / theta_sq
     return np.eye(3) + a * W + b * (W @ W)
+
+
+def _so3_exp_stack(w: Array) -> Array:
+    """:func:`so3_exp` of a stack (..., 3) of rotation vectors, same coefficients and branch."""
+    theta_sq = np.einsum("...i,...i->...", w, w)
+    theta = np.sqrt(theta_sq)
+    small = theta_sq < _SMALL_ANGLE**2
+    safe = np.where(small, 1.0, theta)  # no 0/0 in the branch np.where discards
+    a = np.where(small, 1.0 - theta_sq / 6.0, np.sin(safe) / safe)
+    b = np.where(small, 0.5 - theta_sq / 24.0, (1.0 - np.cos(safe)) / (safe * safe))
+    W = skew_batch(w)
+    out: Array = np.eye(3) + a[..., None, None] * W + b[..., None, None] * (W @ W)
+    return out
 
 
 def quat_wxyz_from_matrix(R: Array) -> Array:

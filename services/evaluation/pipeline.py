@@ -14,9 +14,9 @@ from typing import Any
 
 import numpy as np
 
+from services.evaluation.metrics import JointEstimate, tangent_error
 from services.kinematics.config import KinematicsConfig
 from services.kinematics.estimator import KinematicBelief, KinematicEstimator
-from services.kinematics.metrics import JointEstimate
 from services.kinematics.prediction import predict_hand_pose
 from services.synthetic.generator import Demonstration
 from services.tracker.config import TrackerConfig
@@ -67,8 +67,7 @@ def run_pipeline(demo: Demonstration, tracker_config: TrackerConfig | None = Non
                                visibility=np.asarray(demo.visibility[i], float))
         body = tracker.step(int(stamp), [hand], kinematic_prior=prior)
         if body is not None and body.initialized:
-            updated = estimator.update(int(stamp), body.pose, body.covariance[:6, :6])
-            belief = updated if updated is not None else belief
+            belief = estimator.update(int(stamp), body.pose, body.covariance[:6, :6])
         seconds[i] = time.perf_counter() - t0
         history.append(belief)
     final = belief if belief is not None else estimator.belief
@@ -79,3 +78,10 @@ def run_pipeline(demo: Demonstration, tracker_config: TrackerConfig | None = Non
 def ablation_config(config: TrackerConfig | None = None) -> TrackerConfig:
     """The "without uncertainty models" variant of a tracker config."""
     return replace(config or TrackerConfig(), use_uncertainty_models=False)
+
+
+def demo_tangent_error_deg(model: Any, demo: Demonstration) -> float:
+    """Tangent error (deg) of ``model``'s most probable joint (:func:`joint_estimate`) against
+    ``demo``'s true joint, sampled along the true grasp path (camera frame)."""
+    truth = JointEstimate.from_joint(demo.truth.joint)
+    return float(np.degrees(tangent_error(truth, joint_estimate(model), demo.truth.grasp_points)))

@@ -40,6 +40,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from services.common.kabsch import weighted_kabsch
 from services.common.se3 import skew
 from services.tracker.body import (
     MOTION_MODELS,
@@ -58,7 +59,7 @@ from services.tracker.landmarks import (
     body_measurement_covariances,
     ray_measurement_covariances,
 )
-from services.tracker.ransac import initial_body, rigid_ransac, weighted_kabsch
+from services.tracker.ransac import initial_body, rigid_ransac
 
 Array = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]

@@ -10,7 +10,16 @@ import time
 
 import pytest
 
-from services.common.bus import Bus, BusError, NoResponder, QueryAnswer, QueryRejected, QueryTimeout
+from services.common.bus import (
+    Bus,
+    BusError,
+    NoResponder,
+    QueryAnswer,
+    QueryRejected,
+    QueryTimeout,
+    ZenohOptions,
+    wait_for_services,
+)
 from services.common.keys import Keys
 from services.common.processes import child_env
 from services.common.protocol import HandLandmarks, ServiceStats
@@ -118,3 +127,14 @@ def test_a_failing_queryable_is_answered_and_logged_once_a_second(
     # 30 failures within a few seconds: one line per second at most, each with its count.
     assert 1 <= len(lines) <= 1 + int(time.monotonic() - t0)
     assert all(r.exc_info is None for r in lines)
+
+
+def test_wait_for_services_sees_tokens_and_names_the_missing(client_bus: Bus, router: str) -> None:
+    options = ZenohOptions(mode="client", connect=(router,), multicast_scouting=False)
+    with Bus(options) as other:
+        other.declare_token(KEYS.alive("tracker"))
+        wait_for_services(client_bus, KEYS, ["tracker"], timeout=20.0)  # returns: token seen
+        with pytest.raises(BusError, match="not alive after") as err:
+            wait_for_services(client_bus, KEYS, ("tracker", "kinematics"), timeout=0.3)
+    assert KEYS.alive("kinematics") in str(err.value)
+    assert KEYS.alive("tracker") not in str(err.value)  # only what is missing is named

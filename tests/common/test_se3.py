@@ -125,3 +125,20 @@ def test_float_kernels_agree_with_the_numpy_maps(xi: np.ndarray) -> None:
     np.testing.assert_allclose(se3.so3_left_jacobian_fast(xi[3:]),
                                se3.so3_left_jacobian(xi[3:]), atol=1e-12)
     assert abs(se3.rotation_angle_fast(T[:3, :3]) - se3.rotation_angle(T[:3, :3])) < 1e-9
+
+
+def test_stacks_of_rotation_vectors_and_skews_match_one_at_a_time() -> None:
+    rng = np.random.default_rng(7)
+    # angles from 0 through the small-angle branch (1e-4) to past pi, in a (2, 5, 3) stack
+    scales = np.array([0.0, 1e-9, 5e-5, 2e-4, 0.7, 2.0, np.pi, 3.5, 6.0, 9.0])
+    axes = rng.normal(size=(10, 3))
+    axes /= np.linalg.norm(axes, axis=1)[:, None]
+    w = (axes * scales[:, None]).reshape(2, 5, 3)
+    R = se3.so3_exp(w)
+    K = se3.skew_batch(w)
+    assert R.shape == K.shape == (2, 5, 3, 3)
+    for i in np.ndindex(2, 5):
+        # same formula, terms summed in another order: agreement to a few ulps of |R| = 1
+        np.testing.assert_allclose(R[i], se3.so3_exp(w[i]), rtol=0, atol=1e-14)
+        np.testing.assert_array_equal(K[i], se3.skew(w[i]))
+        np.testing.assert_allclose(R[i] @ R[i].T, np.eye(3), rtol=0, atol=1e-14)

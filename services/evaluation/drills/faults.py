@@ -3,7 +3,7 @@ and measure how it recovers (issue 8). Used by ``tests/deploy/test_faults.py`` a
 ``bench/faults.py``.
 
 :class:`FaultRig` starts, on TCP loopback, a router, the tracker and the kinematics service (the
-"CPU host") connected to the router *through* a :class:`~services.common.linkproxy.LinkProxy`
+"CPU host") connected to the router *through* a :class:`~services.evaluation.drills.linkproxy.LinkProxy`
 (the link that :meth:`FaultRig.inject` can cut), and a robot bridge (MuJoCo, dry runs only)
 plus this process's observer session connected directly. Every session, the router's included,
 has a lease of ``lease_ms`` (2 s), as in the deployment. The tracker and the kinematics service
@@ -30,11 +30,11 @@ from pathlib import Path
 
 from services.common.bus import Bus, BusError, ZenohOptions
 from services.common.keys import Keys
-from services.common.linkproxy import LinkProxy
 from services.common.processes import ProcessGroup, client_args, free_tcp_endpoint, wait_for
 from services.common.protocol import ArticulateRequest, ArticulateResult, KinematicModel
 from services.common.recording import RecordedMessage
-from services.demo import demo_tangent_error_deg
+from services.evaluation.drills.linkproxy import LinkProxy
+from services.evaluation.pipeline import demo_tangent_error_deg
 from services.synthetic.generator import Demonstration
 from services.synthetic.replay import demonstration_recording
 
