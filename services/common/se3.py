@@ -11,9 +11,11 @@ Conventions (the same everywhere in handkse):
   (atan2 of the half angle), so it is stable near 0 and near pi, where ``1/sin`` forms are not.
 
 Lengths are metres, angles radians. Functions take and return numpy arrays and do not check
-their inputs; callers at module boundaries validate. :func:`skew_batch` and :func:`so3_exp` also
-take stacks ``(..., 3)`` of vectors. This module is the one home of ``[v]x`` and Rodrigues'
-formula; rigid fits of point sets are in :mod:`services.common.kabsch`.
+their inputs; callers at module boundaries validate, with :func:`check_pose` for poses (the one
+pose check of handkse: the protocol decoder and the libraries' own input checks use it).
+:func:`skew_batch` and :func:`so3_exp` also take stacks ``(..., 3)`` of vectors. This module is
+the one home of ``[v]x`` and Rodrigues' formula; rigid fits of point sets are in
+:mod:`services.common.kabsch`.
 
 The ``*_fast`` functions compute the same maps for one input on Python floats, with the same
 small-angle branches: a few microseconds where a dozen tiny numpy operations take tens, for
@@ -29,6 +31,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 Array = NDArray[np.float64]
+
+# Tolerance of check_pose on a rotation's orthonormality and determinant; the wire contract's
+# (docs/protocol.md, validation rules).
+POSE_TOLERANCE = 1e-6
 
 # Below this rotation angle (rad) the closed forms lose precision and Taylor series are used.
 _SMALL_ANGLE = 1e-4
@@ -251,6 +257,35 @@ def pose_from_rotation_translation(R: Array, t: Array) -> Array:
     T[:3, :3] = R
     T[:3, 3] = t
     return T
+
+
+def check_pose(T: object, tol: float = POSE_TOLERANCE) -> str | None:
+    """What is wrong with ``T`` as a pose ``T_a_b``, or None when it is a rigid transform.
+
+    ``T``: array-like, shape (4, 4). A rigid transform is finite, its rotation block ``R`` has
+    ``max |R^T R - I| <= tol`` and ``|det R - 1| <= tol`` (no reflection, no scale), and its
+    bottom row is exactly ``[0, 0, 0, 1]``. Never raises: the answer is a short description of
+    the first problem found, for the caller's error message (callers decide whether to raise,
+    reject or count).
+    """
+    try:
+        M = np.asarray(T, dtype=float)
+    except (TypeError, ValueError):
+        return "not a numeric array"
+    if M.shape != (4, 4):
+        return f"shape must be (4, 4), got {M.shape}"
+    if not np.isfinite(M).all():
+        return "contains NaN or infinity"
+    if (M[3] != (0.0, 0.0, 0.0, 1.0)).any():
+        return f"bottom row must be [0, 0, 0, 1], got {M[3].tolist()}"
+    R = M[:3, :3]
+    err = float(np.abs(R.T @ R - np.eye(3)).max())
+    if err > tol:
+        return f"rotation is not orthonormal (max |R^T R - I| = {err:.3g} > {tol:g})"
+    det = float(np.linalg.det(R))
+    if abs(det - 1.0) > tol:
+        return f"rotation has determinant {det:.9g}, not 1"
+    return None
 
 
 def rotation_angle(R: Array) -> float:

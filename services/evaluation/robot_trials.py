@@ -117,9 +117,8 @@ def estimate(method: str, demo: object) -> KinematicModel:
     d = demo
     if method == "ours":
         from services.evaluation.pipeline import run_pipeline
-        from services.kinematics.service import model_message
 
-        return model_message(run_pipeline(d).final, 0)  # type: ignore[arg-type]
+        return run_pipeline(d).final  # type: ignore[arg-type]
     from services.evaluation import baselines
 
     stream = (d.stamps_ns, d.points, d.visibility)  # type: ignore[attr-defined]

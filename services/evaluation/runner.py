@@ -16,11 +16,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from services.common.protocol import KinematicModel
 from services.evaluation import baselines, metrics
 from services.evaluation.metrics import JointEstimate
 from services.evaluation.pipeline import ablation_config, joint_estimate, run_pipeline
 from services.kinematics.config import KinematicsConfig
-from services.kinematics.estimator import KinematicBelief
 from services.synthetic.generator import (
     EVALUATION_SPLIT,
     TUNING_SPLIT,
@@ -93,13 +93,13 @@ def _ours(demo: Demonstration, method: str, tracker: TrackerConfig,
                 math.nan if converge is None else converge)
 
 
-def _distinct_estimates(history: Sequence[KinematicBelief | None]) -> list[JointEstimate | None]:
-    """Joint estimates per frame, converting each distinct belief once."""
+def _distinct_estimates(history: Sequence[KinematicModel | None]) -> list[JointEstimate | None]:
+    """Joint estimates per frame, converting each distinct model once."""
     out: list[JointEstimate | None] = []
-    last: tuple[KinematicBelief | None, JointEstimate | None] = (None, None)
-    for belief in history:
-        if belief is not last[0]:
-            last = (belief, None if belief is None else joint_estimate(belief))
+    last: tuple[KinematicModel | None, JointEstimate | None] = (None, None)
+    for model in history:
+        if model is not last[0]:
+            last = (model, None if model is None else joint_estimate(model))
         out.append(last[1])
     return out
 

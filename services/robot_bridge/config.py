@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from services.common.se3 import check_pose
 from services.robot_bridge.controller import ImpedanceGains
 
 BACKENDS = ("mujoco", "panda")
@@ -126,11 +127,8 @@ class RobotBridgeConfig:
         T = np.asarray(self.T_base_camera, float)
         if T.shape != (16,):
             raise ValueError(f"T_base_camera needs 16 numbers (row-major 4x4), got {T.size}")
-        T = T.reshape(4, 4)
-        R = T[:3, :3]
-        if (np.abs(R.T @ R - np.eye(3)).max() > 1e-6 or abs(np.linalg.det(R) - 1.0) > 1e-6
-                or np.abs(T[3] - (0.0, 0.0, 0.0, 1.0)).max() > 0.0):
-            raise ValueError("T_base_camera is not a rigid transform")
+        if (problem := check_pose(T.reshape(4, 4))) is not None:
+            raise ValueError(f"T_base_camera is not a rigid transform: {problem}")
 
     def base_T_camera(self) -> NDArray[np.float64]:
         """``T_base_camera`` as a 4x4 array."""

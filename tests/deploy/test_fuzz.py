@@ -291,7 +291,7 @@ def test_tracker_and_kinematics_survive_fuzzing_and_keep_serving(
 
     for service in ("tracker", "kinematics"):
         # >=: a mutated payload may be a valid HandBody, and then kinematics publishes a
-        # (valid) model that the tracker also receives; so does every reset of kinematics
+        # (valid) model that the tracker also receives
         wait_until(lambda s=service: _stats(client_bus, KEYS, s)["received"] >= sent[s], 60,
                    what=f"{service} received everything: {sent[service]} sent, stats "
                         f"{_stats(client_bus, KEYS, service)}")

@@ -1,4 +1,5 @@
-"""The kinematics service over a real Zenoh router, as a separate process."""
+"""The kinematics service over a real Zenoh router: as a separate process, and in-process (the
+node's handlers called directly, on a real session) for what must be exact per message."""
 
 from __future__ import annotations
 
@@ -8,10 +9,13 @@ from pathlib import Path
 
 import numpy as np
 
-from services.common.bus import Bus
+from services.common.bus import Bus, QueryRequest
 from services.common.keys import Keys
 from services.common.protocol import Ack, HandBody, KinematicModel, LandmarkStates
 from services.common.se3 import se3_exp, skew
+from services.common.service import Service
+from services.kinematics.config import KinematicsConfig
+from services.kinematics.service import KinematicsNode
 from tests.conftest import Processes, output_of, wait_until, zenoh_args
 
 KEYS = Keys("kin")
@@ -96,4 +100,50 @@ def test_model_published_queried_reset_and_restored(procs: Processes, router: st
 
     ack = Ack.from_msgpack(client_bus.get(KEYS.reset("kinematics"))[0][1])
     assert ack.ok
-    assert _model(client_bus).updates == 0
+    empty = _model(client_bus)
+    assert (empty.updates, empty.stamp_ns, empty.type) == (0, 0, "unknown")
+    # the reset published nothing (the Ack comes after the reset ran)
+    after = json.loads(client_bus.get(KEYS.stats("kinematics") + "?format=json")[0][1])
+    assert after["published"] == stats["published"]
+
+
+def _node(bus: Bus) -> tuple[Service, KinematicsNode]:
+    service = Service("kinematics", bus, Keys("kinnode"))
+    return service, KinematicsNode(service, KinematicsConfig())
+
+
+def _answer(node: KinematicsNode) -> KinematicModel:
+    request = QueryRequest(key=node.service.keys.kinematics_model, parameters={}, payload=None)
+    return KinematicModel.from_msgpack(node.answer_model(request).payload)
+
+
+def test_each_rejected_body_is_counted_under_its_own_reason(client_bus: Bus) -> None:
+    """Regression: the reason counted for a rejected body was once the most frequent reason so
+    far, so an out-of-order body after five duplicates was counted as a sixth duplicate."""
+    service, node = _node(client_bus)
+    bodies = revolute_bodies(10)
+    for b in bodies:
+        node.on_body(b)
+    for _ in range(5):
+        node.on_body(bodies[-1])
+    node.on_body(bodies[3])
+    assert service.rejected == {"duplicate_stamp": 5, "out_of_order": 1}
+    assert service.published == 10 and _answer(node).updates == 10
+
+
+def test_reset_publishes_nothing_until_the_first_body(client_bus: Bus) -> None:
+    """After a reset ``get`` answers the empty model (stamp 0, updates 0); the next model is
+    published for the first body of the new demonstration, stamped with it (docs/protocol.md)."""
+    service, node = _node(client_bus)
+    bodies = revolute_bodies(30)
+    for b in bodies[:10]:
+        node.on_body(b)
+    assert _answer(node).seq == 9
+    node.reset()
+    assert service.published == 10
+    empty = _answer(node)
+    assert (empty.updates, empty.stamp_ns, empty.type, empty.seq) == (0, 0, "unknown", 0)
+    node.on_body(bodies[20])
+    assert service.published == 11
+    first = _answer(node)
+    assert (first.updates, first.stamp_ns, first.seq) == (1, bodies[20].stamp_ns, 10)

@@ -287,9 +287,8 @@ class FaultRig:
         """Reset the tracker and the kinematics service; clear what the observer recorded."""
         for service in BEHIND_LINK:
             self.observer.get(self.keys.reset(service), timeout=5.0)
-        # the kinematics service publishes its reset belief: wait for it, then start clean
-        wait_for(lambda: (m := self.last_model()) is not None and m[1].updates == 0, timeout,
-                 "the reset model")
+        # a reset publishes nothing: let models published before it drain, then start clean
+        self.wait_settled(quiet_s=0.3, timeout=timeout)
         with self._lock:
             self.models.clear()
             self.body_times.clear()
