@@ -81,7 +81,7 @@ def ablation_config(config: TrackerConfig | None = None) -> TrackerConfig:
     return replace(config or TrackerConfig(), use_uncertainty_models=False)
 
 
-def demo_tangent_error_deg(model: Any, demo: Demonstration) -> float:
+def demo_tangent_error_deg(model: KinematicModel, demo: Demonstration) -> float:
     """Tangent error (deg) of ``model``'s most probable joint (:func:`joint_estimate`) against
     ``demo``'s true joint, sampled along the true grasp path (camera frame)."""
     truth = JointEstimate.from_joint(demo.truth.joint)

@@ -90,9 +90,10 @@ def test_articulate_over_zenoh_and_robot_state(procs: Processes, router: str,
     kinematics.undeclare()
     # ... and falls back to the last model published on the model key
     client_bus.put(KEYS.kinematics_model, _key_model(time.time_ns()).to_msgpack())
-    time.sleep(0.3)
-    dry = _articulate(client_bus, ArticulateRequest(amount=math.pi / 2, duration_s=2.0,
-                                                    dry_run=True))
+    dry_request = ArticulateRequest(amount=math.pi / 2, duration_s=2.0, dry_run=True)
+    wait_until(lambda: _articulate(client_bus, dry_request).reason != "no_model", 10,
+               what="the bridge has the published model")
+    dry = _articulate(client_bus, dry_request)
     assert dry.reason == "dry_run"
     assert np.allclose(states[-1].q, idle.q, atol=1e-9)  # dry runs do not move
 
@@ -116,6 +117,8 @@ def test_requests_are_served_one_at_a_time(procs: Processes, router: str,
                                            client_bus: Bus) -> None:
     """Zenoh runs a queryable's callbacks one after the other: a second request waits for the
     first articulation to end (the bridge would answer ``busy`` if they overlapped)."""
+    states: list[RobotState] = []
+    client_bus.subscribe(KEYS.robot_state, lambda k, p: states.append(RobotState.from_msgpack(p)))
     _start_bridge(procs, router)
     wait_until(lambda: KEYS.alive("robot_bridge") in client_bus.alive(KEYS.alive_all), 20,
                what="robot bridge liveliness")
@@ -128,7 +131,8 @@ def test_requests_are_served_one_at_a_time(procs: Processes, router: str,
 
     t = threading.Thread(target=first)
     t.start()
-    time.sleep(0.7)
+    wait_until(lambda: any(s.mode == "articulating" for s in states), 20,
+               what="the first articulation under way")
     second = _articulate(client_bus, ArticulateRequest(
         amount=math.pi / 4, duration_s=1.5, model=_key_model(time.time_ns()), dry_run=True))
     answered = time.monotonic()
