@@ -299,6 +299,9 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
                    help="stop after the estimate (skip the simulated articulation)")
     p.add_argument("--view", action="store_true",
                    help="show the run in Rerun's web viewer (handkse view; extra 'view')")
+    p.add_argument("--web-port", type=int, default=9090, help="with --view: web viewer port")
+    p.add_argument("--grpc-port", type=int, default=9876,
+                   help="with --view: port of the viewer's data server")
 
     p = add("eval", cmd_eval, "evaluate every method on the synthetic demonstrations (Table II)")
     from services.evaluation.cli import add_arguments as add_eval_arguments

@@ -71,12 +71,13 @@ def print_comparison(model: KinematicModel, demo: Demonstration) -> float:
 
 def run_demo(object_name: str = "key", participant: int = 3, seed: int = 0, rate: float = 1.0,
              rig: str = "demo", workdir: Path | None = None, robot: bool = True,
-             view: bool = False) -> float:
+             view: bool = False, view_ports: tuple[int, int] = (9090, 9876)) -> float:
     """Run the whole pipeline on one synthetic demonstration; returns the tangent error (deg).
 
     With ``robot``, the simulated Panda then grasps the true object and articulates it along the
     estimated model (MuJoCo), and the result with peak and mean force is printed. With ``view``,
-    ``handkse view`` shows the run in Rerun's web viewer (its URL is printed).
+    ``handkse view`` shows the run in Rerun's web viewer (its URL is printed); ``view_ports``
+    are the viewer's web and data ports on 127.0.0.1.
     """
     demo = generate(object_name, participant, seed)
     messages = demonstration_recording(demo, rig)
@@ -90,7 +91,8 @@ def run_demo(object_name: str = "key", participant: int = 3, seed: int = 0, rate
     with ProcessGroup(workdir) as group:
         group.start_pipeline(endpoint, rig, SERVICES)
         if view:
-            group.start("view", "view", *client_args(endpoint, rig))
+            group.start("view", "view", *client_args(endpoint, rig), "--web-port",
+                        str(view_ports[0]), "--grpc-port", str(view_ports[1]))
             group.wait_log("view", "web viewer at", 60.0)
             print(next(line for line in group.log("view").splitlines()
                        if line.startswith("web viewer at")), flush=True)
@@ -149,5 +151,6 @@ def _wait_settled(latest: list[KinematicModel], quiet_s: float = 1.0, timeout: f
 
 def main(args: argparse.Namespace) -> int:
     run_demo(args.object, args.participant, args.seed, args.rate, args.rig,
-             robot=not args.no_robot, view=args.view)
+             robot=not args.no_robot, view=args.view,
+             view_ports=(args.web_port, args.grpc_port))
     return 0

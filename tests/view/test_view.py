@@ -19,6 +19,7 @@ pytest.importorskip("rerun", reason="handkse view needs the 'view' extra (rerun-
 
 from services.view import rerun_scene as scene
 from tests.view.chromium import Chromium, available
+from tests.view.ports import free_ports
 from tests.view.rrd import at, read_entities
 
 RIG = "view"
@@ -164,10 +165,7 @@ def test_web_viewer_shows_the_landmarks(procs: Processes, router: str, tmp_path:
     """The default view: Rerun's web viewer on loopback, opened in headless Chromium (WebGL on
     the SwiftShader software rasterizer). The 3-D view is empty before data and shows the
     landmarks after; the screenshot is kept in the test's directory."""
-    from services.common.processes import free_tcp_endpoint
-
-    web_port = int(free_tcp_endpoint().rsplit(":", 1)[1])
-    grpc_port = int(free_tcp_endpoint().rsplit(":", 1)[1])
+    web_port, grpc_port = free_ports(2)
     z = [*zenoh_args(router), "--rig", RIG]
     view = procs.start("view", *z, "--web-port", str(web_port), "--grpc-port", str(grpc_port),
                        name="view")
