@@ -13,6 +13,7 @@ import pytest
 
 from services.common.keys import Keys
 from services.common.protocol import HandBody, HandLandmarks, KinematicModel
+from services.common.recording import read_recording
 from tests.conftest import Processes, output_of, wait_until, zenoh_args
 
 pytest.importorskip("rerun", reason="handkse view needs the 'view' extra (rerun-sdk)")
@@ -202,3 +203,16 @@ def test_web_viewer_shows_the_landmarks(procs: Processes, router: str, tmp_path:
     assert yellow_before < 50, f"landmark colours before any data? see {before}"
     assert yellow > 300, f"no landmarks drawn ({yellow} yellow pixels); see {after}"
     assert spread > 8.0, f"the 3-D view looks blank; see {after}"
+
+
+def test_view_of_a_recording_logs_every_message_at_its_stamp(procs: Processes,
+                                                            tmp_path: Path) -> None:
+    recording, rrd = tmp_path / "demo.mcap", tmp_path / "demo.rrd"
+    saved = procs.run("replay", "--synthetic", "bolt", "--save", str(recording))
+    assert saved.returncode == 0, saved.stdout + saved.stderr
+    shown = procs.run("view", str(recording), "--save", str(rrd), timeout=120)
+    assert shown.returncode == 0, shown.stdout + shown.stderr
+    stamps = [m.publish_time_ns for m in read_recording(recording)]
+    assert f"view: logged {len(stamps)} messages from {recording}" in shown.stdout
+    rows = read_entities(rrd)[f"/{scene.DETECTED}"]
+    assert sorted(r["stamp_ns"] for r in rows if r["stamp_ns"] is not None) == sorted(stamps)
