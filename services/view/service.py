@@ -20,7 +20,9 @@ and the rejected payloads at the end.
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import logging
+import os
 import queue
 import socket
 import subprocess
@@ -85,12 +87,42 @@ def _wait_port(port: int, proc: subprocess.Popen[bytes], timeout: float = 20.0) 
                      f"within {timeout:.0f} s")
 
 
+def rerun_program() -> str:
+    """The ``rerun`` program of the rerun-sdk wheel (``RERUN_CLI_PATH`` overrides it), run
+    directly: its Python launcher would leave the program running when the launcher is ended."""
+    if os.environ.get("RERUN_CLI_PATH"):
+        return os.environ["RERUN_CLI_PATH"]
+    spec = importlib.util.find_spec("rerun_cli")
+    if spec is None or not spec.submodule_search_locations:
+        raise SystemExit(f"{_EXTRA_HINT} (no rerun_cli package)")
+    return str(Path(next(iter(spec.submodule_search_locations))) / "rerun")
+
+
+# Starts a program that gets SIGTERM when its parent dies, even by SIGKILL (Linux prctl
+# PR_SET_PDEATHSIG, kept across exec), so that no viewer is left holding its ports. A launcher
+# process rather than ``preexec_fn``, which is unsafe in this multi-threaded process.
+_LAUNCH_TIED_TO_PARENT = """
+import ctypes, os, signal, sys
+ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGTERM)
+if os.getppid() != int(sys.argv[1]):
+    sys.exit(1)
+os.execv(sys.argv[2], sys.argv[2:])
+"""
+
+
+def tied_to_this_process(cmd: list[str]) -> list[str]:
+    """``cmd`` run so that it ends when this process ends (on Linux; unchanged elsewhere)."""
+    if not sys.platform.startswith("linux"):
+        return cmd
+    return [sys.executable, "-c", _LAUNCH_TIED_TO_PARENT, str(os.getpid()), *cmd]
+
+
 def start_web_viewer(web_port: int, grpc_port: int) -> subprocess.Popen[bytes]:
     """Run ``rerun --serve-web`` bound to loopback: the web viewer on ``web_port`` and the data
     server (which buffers everything for late viewers) on ``grpc_port``."""
-    cmd = [sys.executable, "-m", "rerun_cli", "--serve-web", "--bind", _LOOPBACK,
-           "--port", str(grpc_port), "--web-viewer-port", str(web_port)]
-    proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL)
+    cmd = [rerun_program(), "--serve-web", "--bind", _LOOPBACK, "--port", str(grpc_port),
+           "--web-viewer-port", str(web_port)]
+    proc = subprocess.Popen(tied_to_this_process(cmd), stdin=subprocess.DEVNULL)
     _wait_port(grpc_port, proc)
     _wait_port(web_port, proc)
     return proc
@@ -106,16 +138,17 @@ class View:
             from services.view.rerun_scene import RerunScene, SceneOptions, blueprint
         except ImportError as exc:
             raise SystemExit(f"{_EXTRA_HINT} ({exc})") from exc
-        self._rr = rr
-        self.rec = rr.RecordingStream("handkse")
         self.viewer: subprocess.Popen[bytes] | None = None
+        web = not args.native and (args.web_port is not None or args.save is None)
+        if web:
+            web_port = args.web_port or DEFAULT_WEB_PORT
+            self.viewer = start_web_viewer(web_port, args.grpc_port)
+        self.rec = rr.RecordingStream("handkse")
         sinks: list[Any] = []
         if args.native:
             self.rec.spawn(port=args.grpc_port, connect=False)
             sinks.append(rr.GrpcSink(f"rerun+http://{_LOOPBACK}:{args.grpc_port}/proxy"))
-        elif args.web_port is not None or args.save is None:
-            web_port = args.web_port or DEFAULT_WEB_PORT
-            self.viewer = start_web_viewer(web_port, args.grpc_port)
+        elif web:
             sinks.append(rr.GrpcSink(f"rerun+http://{_LOOPBACK}:{args.grpc_port}/proxy"))
             print(f"web viewer at {viewer_url(web_port, args.grpc_port)}", flush=True)
         if args.save is not None:
