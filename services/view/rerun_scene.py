@@ -143,7 +143,8 @@ class RerunScene:
     def handle(self, key: str, payload: bytes) -> bool:
         """Decode and log one payload by its key; False for keys the view does not draw.
 
-        A payload that does not decode is counted by reason and noted in ``log/errors``.
+        A payload that does not decode is counted by reason and noted in ``log/errors``, and so is
+        one that decodes but cannot be drawn (``undrawable``).
         """
         suffix = key.split("/", 2)[-1] if key.count("/") >= 2 else key
         decode = _HANDLERS.get(suffix)
@@ -156,7 +157,13 @@ class RerunScene:
             self.counters.rejected[exc.reason] = self.counters.rejected.get(exc.reason, 0) + 1
             self.rec.log(ERROR_LOG, rr.TextLog(f"{key}: {exc}", level=rr.TextLogLevel.WARN))
             return True
-        method(self, message)
+        try:
+            method(self, message)
+        except ValueError as exc:  # valid on the wire, but nothing drawable (e.g. a huge value)
+            self.counters.rejected["undrawable"] = self.counters.rejected.get("undrawable", 0) + 1
+            self.rec.log(ERROR_LOG, rr.TextLog(f"{key}: cannot draw: {exc}",
+                                               level=rr.TextLogLevel.WARN))
+            return True
         self.counters.logged[suffix] = self.counters.logged.get(suffix, 0) + 1
         return True
 

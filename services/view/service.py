@@ -117,9 +117,20 @@ def tied_to_this_process(cmd: list[str]) -> list[str]:
     return [sys.executable, "-c", _LAUNCH_TIED_TO_PARENT, str(os.getpid()), *cmd]
 
 
+def _check_free(port: int, option: str) -> None:
+    with socket.socket() as s:
+        try:
+            s.bind((_LOOPBACK, port))
+        except OSError as exc:
+            raise SystemExit(f"handkse view: port {port} on {_LOOPBACK} is taken ({exc.strerror}); "
+                             f"choose another with {option}") from exc
+
+
 def start_web_viewer(web_port: int, grpc_port: int) -> subprocess.Popen[bytes]:
     """Run ``rerun --serve-web`` bound to loopback: the web viewer on ``web_port`` and the data
     server (which buffers everything for late viewers) on ``grpc_port``."""
+    _check_free(web_port, "--web-port")
+    _check_free(grpc_port, "--grpc-port")
     cmd = [rerun_program(), "--serve-web", "--bind", _LOOPBACK, "--port", str(grpc_port),
            "--web-viewer-port", str(web_port)]
     proc = subprocess.Popen(tied_to_this_process(cmd), stdin=subprocess.DEVNULL)

@@ -4,6 +4,7 @@ real processes, the view as one more client, and the ``.rrd`` read back with Rer
 from __future__ import annotations
 
 import re
+import socket
 import threading
 import time
 from pathlib import Path
@@ -216,3 +217,13 @@ def test_view_of_a_recording_logs_every_message_at_its_stamp(procs: Processes,
     assert f"view: logged {len(stamps)} messages from {recording}" in shown.stdout
     rows = read_entities(rrd)[f"/{scene.DETECTED}"]
     assert sorted(r["stamp_ns"] for r in rows if r["stamp_ns"] is not None) == sorted(stamps)
+
+
+def test_a_taken_port_is_refused_with_the_option_to_change(procs: Processes) -> None:
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        result = procs.run("view", "--web-port", str(port), timeout=60)
+    assert result.returncode != 0
+    assert f"port {port} on 127.0.0.1 is taken" in result.stderr and "--web-port" in result.stderr
