@@ -256,8 +256,10 @@ class JointGeometry:
     ``segment`` (2, 3): the axis line's end points (revolute) or the arrow's tail and head
     (prismatic); ``cone`` the uncertainty cone(s) as line strips, ``cone_half_angle_rad``;
     ``sweep`` (n, 3): the reference hand position swept over the demonstrated range (an arc
-    about the axis, or the stroke along it); ``point_ellipsoid`` the revolute point's
-    uncertainty (None for prismatic).
+    about the axis, or the stroke along it); ``point_ellipsoid`` (revolute only) where the axis
+    passes: the covariance of ``point`` (the 3x3 block after the axis coordinates) without its
+    along-axis part, centred on ``origin`` (the published point, nearest the frame origin, can be
+    far from the object; the axis direction's own uncertainty is the cone).
     """
 
     type: str
@@ -288,9 +290,12 @@ def joint_geometry(model: KinematicModel, q_range: tuple[float, float] = (0.0, 0
         sweep = np.array([origin + so3_exp(u * a) @ arm for a in angles])
         alpha = cone_half_angle(r.covariance[:2, :2], n_sigma)
         cone = cone_lines(origin, u, alpha, half) + cone_lines(origin, -u, alpha, half)
+        # where the axis passes near the hand: the point's covariance moved along the axis to
+        # the origin (I - u u^T removes the along-axis part, which does not move the line)
+        across = np.eye(3) - np.outer(u, u)
+        passes = ellipsoid_from_covariance(origin, across @ r.covariance[2:5, 2:5] @ across, n_sigma)
         return JointGeometry("revolute", u, origin, np.vstack([origin - half * u, origin + half * u]),
-                             cone, alpha, sweep,
-                             ellipsoid_from_covariance(point, r.covariance[2:5, 2:5], n_sigma))
+                             cone, alpha, sweep, passes)
     if model.type == "prismatic" and model.prismatic is not None:
         p = model.prismatic
         u = np.asarray(p.axis, float)

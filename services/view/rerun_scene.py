@@ -16,7 +16,7 @@ y down, z forward):
   its position ellipsoid, ``world/hand/trail`` the recent origins;
 - ``world/model/axis`` (line, revolute) or ``world/model/arrow`` (prismatic),
   ``world/model/cone`` the axis uncertainty, ``world/model/sweep`` the demonstrated arc or
-  stroke, ``world/model/point_covariance`` the revolute point's ellipsoid;
+  stroke, ``world/model/point_covariance`` where the revolute axis passes near the hand;
 - ``robot/ee`` the end-effector pose and ``robot/trail``, in the robot's base frame (a space of
   its own: the camera-to-base calibration is not on the bus);
 - ``plots/type_probability/{rigid,prismatic,revolute,disconnected}``, ``plots/joint/q``,

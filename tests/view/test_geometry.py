@@ -116,8 +116,15 @@ def test_revolute_geometry_axis_line_arc_and_point_ellipsoid() -> None:
     np.testing.assert_allclose(radii, np.linalg.norm(reference - g.origin), rtol=1e-12)
     assert g.cone_half_angle_rad == pytest.approx(geo.cone_half_angle(r.covariance[:2, :2]))
     assert len(g.cone) == 2 * (1 + 8)  # a cone each way, rim + 8 rays
-    assert g.point_ellipsoid is not None
-    np.testing.assert_array_equal(g.point_ellipsoid.center, r.point)
+    e = g.point_ellipsoid
+    assert e is not None
+    np.testing.assert_array_equal(e.center, g.origin)
+    # flat along the axis: the point's uncertainty across the axis only
+    along = e.rotation.T @ r.axis
+    assert float(np.abs(along) @ e.half_sizes) == pytest.approx(0.0, abs=1e-9)
+    across = np.eye(3) - np.outer(r.axis, r.axis)
+    back = e.rotation @ np.diag((e.half_sizes / 2.0) ** 2) @ e.rotation.T
+    np.testing.assert_allclose(back, across @ r.covariance[2:5, 2:5] @ across, atol=1e-9)
 
 
 def test_prismatic_geometry_arrow_from_the_reference_and_the_stroke() -> None:
