@@ -54,7 +54,7 @@ Physical terms (beyond Table I)
   4.9 / 4.2, 4 -> 5.6 / 4.4.
 - ``template_memory_frames``, ``template_candidate_frames``: the body model (landmark
   coordinates in the body frame) is refined from every accepted frame and completed with the
-  landmarks that were not RANSAC inliers at initialisation (``HandTracker._refine_template``);
+  landmarks that were not RANSAC inliers at initialisation (``template.BodyTemplate.refine``);
   a model from a 5-frame window carries that window's (slowly varying) detector error forever.
   Tuning split: per-frame rotation error 3.7 -> 3.1 deg RMS per axis.
 - ``max_correlation_factor``: the published covariance is inflated by the measured
@@ -148,7 +148,7 @@ class TrackerConfig:
     depth_variance_factor: float = 2.0
     # Flexion std of each finger joint [rad] (articulation variance added to R_rb; 0 = rigid).
     articulation_std_rad: float = 0.15
-    # Body-model refinement (HandTracker._refine_template): running mean of each landmark's
+    # Body-model refinement (template.BodyTemplate.refine): running mean of each landmark's
     # body-frame coordinates over up to this many frames (0 = fixed at initialisation) ...
     template_memory_frames: int = 60
     # ... and landmarks outside the initial model join it after this many observations.

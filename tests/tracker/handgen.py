@@ -172,7 +172,7 @@ def run(tracker: HandTracker, scenario: Scenario,
         T = scenario.T_frame_hand(t)
         T_wc = None if scenario.T_world_camera is None else scenario.T_world_camera(t)
         est = tracker.step(stamp, make_hands(k, T, T_wc), T_world_camera=T_wc,
-                           kinematic_prior=prior)
+                           kinematic_prior=prior).estimate
         log.stamps.append(stamp)
         log.truth.append(T)
         log.estimates.append(est)

@@ -12,16 +12,18 @@ from services.tracker.body import (
     HandBodyEkf,
     Prediction,
     body_noise_matrices,
-    information_sums,
     informative,
     innovation_covariance,
+    merge_pose,
+    select_and_gate,
+)
+from services.tracker.body_measurement import (
+    information_sums,
     log_likelihoods,
     measurement_jacobians,
-    merge_pose,
     posterior_residual_passes,
     predicted_points,
     prior_gate_passes,
-    select_and_gate,
 )
 from services.tracker.landmarks import inv_sym3
 from tests.tracker.handgen import HAND

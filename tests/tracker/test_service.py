@@ -102,7 +102,7 @@ def test_a_restarted_tracker_continues_its_body_frame(procs: Processes, router: 
     uninterrupted = HandTracker(TrackerConfig())
     reference = {}
     for msg in frames:
-        est = uninterrupted.step(msg.stamp_ns, observations(msg))
+        est = uninterrupted.step(msg.stamp_ns, observations(msg)).estimate
         if est is not None and est.initialized:
             reference[msg.stamp_ns] = est.pose
 
@@ -157,7 +157,7 @@ def test_world_landmarks_with_a_camera_pose_are_tracked_in_the_world_frame() -> 
         back = observations(moved)
         np.testing.assert_allclose(back[0].points, msg.hands[0].points, atol=1e-5,
                                    equal_nan=True)
-        est = tracker.step(moved.stamp_ns, back, T_world_camera=moved.T_world_camera)
+        est = tracker.step(moved.stamp_ns, back, T_world_camera=moved.T_world_camera).estimate
     assert est is not None and est.initialized and est.frame_id == "world"
     static = observations(dataclasses.replace(frames[0], T_world_camera=T_wc))  # camera frame
     np.testing.assert_array_equal(static[0].points, frames[0].hands[0].points.astype(float))
