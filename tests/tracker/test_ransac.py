@@ -25,6 +25,9 @@ def test_weighted_kabsch_is_exact_without_noise_and_follows_the_weights() -> Non
     T = random_pose(rng)
     dst = transform_points(T, HAND)
     R, t = weighted_kabsch(HAND, dst, rng.uniform(0.1, 5.0, size=21))
+    # Noise-free: round-off only, ~eps (2.2e-16) relative to coordinates of ~1 m, times the
+    # conditioning of the rotation (~1 m / 5 cm hand spread = 20; ~10x more for the flat
+    # hand's weakest axis): ~4e-14.
     np.testing.assert_allclose(R, T[:3, :3], atol=1e-12)
     np.testing.assert_allclose(t, T[:3, 3], atol=1e-12)
     bad = dst.copy()
@@ -32,6 +35,7 @@ def test_weighted_kabsch_is_exact_without_noise_and_follows_the_weights() -> Non
     w = np.ones(21)
     w[3] = 1e-9  # a (near) zero weight makes the corrupted point irrelevant
     R, t = weighted_kabsch(HAND, bad, w)
+    # Not round-off: the 1e-9 weight leaves a bias ~1e-9 * 10 cm / (21 * 5 cm spread) ~ 1e-10.
     np.testing.assert_allclose(R, T[:3, :3], atol=1e-8)
 
 
@@ -42,6 +46,8 @@ def test_batched_kabsch_matches_one_at_a_time() -> None:
     R, t = batched_kabsch(src, dst)
     for k in range(10):
         Rk, tk = weighted_kabsch(src[k], dst[k], np.ones(4))
+        # One algorithm, other summation order: ~eps (2.2e-16) at |x| ~ 1 times the SVD's
+        # conditioning (top singular value / smallest gap, <~ 30 for these points): ~1e-14.
         np.testing.assert_allclose(R[k], Rk, atol=1e-12)
         np.testing.assert_allclose(t[k], tk, atol=1e-12)
         assert np.linalg.det(R[k]) == pytest.approx(1.0)
@@ -80,7 +86,8 @@ def test_ransac_finds_the_motion_with_thirty_percent_outliers(seed: int) -> None
     truth = np.ones(20, dtype=bool)
     truth[outliers] = False
     np.testing.assert_array_equal(result.inliers, truth)
-    # The result is the weighted fit on exactly the true inliers (the best one can do) ...
+    # The result is the weighted fit on exactly the true inliers (the best one can do): the
+    # same Kabsch on the same points, equal to round-off (as in the Kabsch test) ...
     R, t = weighted_kabsch(src[truth], dst[truth], 1.0 / (var_src + var_dst)[truth])
     np.testing.assert_allclose(result.rotation, R, atol=1e-12)
     np.testing.assert_allclose(result.translation, t, atol=1e-12)
@@ -99,6 +106,7 @@ def test_ransac_is_deterministic_for_a_seed_and_refuses_too_few_points() -> None
     runs = [rigid_ransac(src, dst, var, var, iterations=50, threshold=4.0, refinements=1,
                          rng=np.random.default_rng(42)) for _ in range(2)]
     assert runs[0] is not None and runs[1] is not None
+    # Bit-exact on any machine: the same operations on the same inputs and seed.
     np.testing.assert_array_equal(runs[0].transform, runs[1].transform)
     assert rigid_ransac(src[:2], dst[:2], var[:2], var[:2], iterations=5, threshold=4.0,
                         refinements=0, rng=rng) is None
@@ -120,7 +128,9 @@ def test_initial_body_frame_is_the_inlier_centroid_with_reference_axes() -> None
                         np.arange(W, dtype=float) * dt, inliers, motion)
     centroid = positions[-1, 1:].mean(axis=0)
     np.testing.assert_allclose(body.T_frame_body[:3, :3], np.eye(3))
+    # Noise-free window: means and aligned averages of ~1 m coordinates, round-off ~1e-15.
     np.testing.assert_allclose(body.T_frame_body[:3, 3], centroid, atol=1e-12)
     np.testing.assert_allclose(body.points_body[1:], positions[-1, 1:] - centroid, atol=1e-12)
     assert np.isnan(body.points_body[0]).all()
+    # log of the window motion over 4 dt: ~eps (2.2e-16) at |T| ~ 1 m, times 1 / (4 dt) ~ 8.
     np.testing.assert_allclose(body.twist, step / dt, atol=1e-9)

@@ -42,6 +42,8 @@ def wobble(t: float) -> np.ndarray:
 def assert_finite(est: HandBodyEstimate) -> None:
     assert np.isfinite(est.pose).all() and np.isfinite(est.twist).all()
     assert np.isfinite(est.covariance).all()
+    # Symmetric to round-off: every update symmetrises; P0's G M G' (12x12) is off by ~12 eps
+    # of its largest entry (<= ~1 m^2 even for Table I read in SI), far below 1e-12.
     np.testing.assert_allclose(est.covariance, est.covariance.T, atol=1e-12)
     assert est.landmark_points.dtype == np.float32 and est.landmark_points.shape == (21, 3)
     assert est.landmark_variance.dtype == np.float32 and est.landmark_status.dtype == np.uint8
@@ -86,7 +88,10 @@ def test_noise_free_rigid_motion_is_recovered_exactly() -> None:
         D_true = log.truth[k] @ se3_inverse(log.truth[k0])
         return hg.pose_error(log.at(k).pose, D_true @ T_est0)
 
-    assert max(max(errors(k)) for k in range(k0, 30)) < 1e-12  # before the move: exact
+    # Before the move: exact up to round-off, ~eps (2.2e-16) per frame relative to the 0.6 m
+    # coordinates, amplified ~12x into the rotation (0.6 m / 5 cm hand spread), over <= 26
+    # frames: < 1e-13 (pose_error itself is accurate to ~eps, unlike arccos of the trace).
+    assert max(max(errors(k)) for k in range(k0, 30)) < 1e-12
     assert max(errors(len(log.stamps) - 1)) < 1e-6
     assert all(e is not None and e.initialized for e in log.estimates[k0:])
 
@@ -311,6 +316,7 @@ def test_body_is_reinitialised_after_a_long_absence() -> None:
     assert set(states[74:]) == {"init"}  # ... then a new body
     waiting = outputs[70]
     assert waiting is not None
+    # Bit-exact on any machine: set to these constants while waiting, not computed.
     np.testing.assert_array_equal(waiting.pose, np.eye(4))
     np.testing.assert_array_equal(waiting.twist, np.zeros(6))
 
@@ -475,9 +481,12 @@ def test_moving_camera_tracks_in_the_world_frame() -> None:
         assert (a is None) == (b is None)
         if a is not None and b is not None:
             assert a.frame_id == "world"
+            # Equal but for the round-off of moving each landmark through T_world_camera, ~eps
+            # at ~1 m per frame, which the (contractive) filters do not accumulate: ~1e-14.
             np.testing.assert_allclose(a.pose, b.pose, atol=1e-9)
+            # float32 output: one ulp at ~1 m is 6e-8, the tolerance ~16 of them.
             np.testing.assert_allclose(a.landmark_points, b.landmark_points, atol=1e-6)
-    # At rest in the world, the pose does not move while the camera does.
+    # At rest in the world, the pose does not move while the camera does (round-off as above).
     still = [moving_log.at(k).pose for k in moving_log.initialized()
              if hg.Scenario.time_of(moving_log.stamps[k]) < 3.0]
     assert max(np.abs(p - still[0]).max() for p in still) < 1e-9
@@ -570,6 +579,7 @@ def test_hand_selection() -> None:
         for k in range(8):
             est = tracker.step(1_000_000_000 + k * hg.FRAME_NS, [left, right]).estimate
         assert est is not None and est.initialized
+        # Noise-free and at rest the filters hold the measurement; float32 output (ulp 6e-8).
         np.testing.assert_allclose(est.landmark_points, expected.points, atol=1e-6)
     # "best" keeps the hand it started with when the other one scores higher later.
     tracker = HandTracker(TrackerConfig())
@@ -578,7 +588,7 @@ def test_hand_selection() -> None:
     louder = dataclasses.replace(left, score=0.99)
     est = tracker.step(1_000_000_000 + 8 * hg.FRAME_NS, [louder, right]).estimate
     assert est is not None
-    np.testing.assert_allclose(est.landmark_points, right.points, atol=1e-6)
+    np.testing.assert_allclose(est.landmark_points, right.points, atol=1e-6)  # float32, as above
 
 
 def test_landmark_statuses_and_ablation() -> None:
@@ -593,6 +603,7 @@ def test_landmark_statuses_and_ablation() -> None:
     for k in range(6):
         est_rigid = rigid.step(1_000_000_000 + k * hg.FRAME_NS, [obs]).estimate
     assert est_rigid is not None
+    # float32 variances: relative ulp 6e-8, the tolerance ~16 of them.
     np.testing.assert_allclose(est_rigid.landmark_variance[8] * 3.0,
                                est_rigid.landmark_variance[9],
                                rtol=1e-6)  # tip s=0.5 vs MCP s=1.5, same filter state
@@ -619,6 +630,8 @@ def test_reset_makes_runs_repeatable() -> None:
         logs.append(hg.run(tracker, scenario, noisy_hands(np.random.default_rng(8))))
     for a, b in zip(*(log.estimates for log in logs), strict=True):
         assert a is not None and b is not None
+        # Bit-exact on any machine: the same operations on the same inputs in one process; any
+        # difference is state that reset() left behind.
         np.testing.assert_array_equal(a.pose, b.pose)
         np.testing.assert_array_equal(a.covariance, b.covariance)
 
@@ -691,6 +704,7 @@ def test_moving_camera_with_anisotropic_noise_is_frame_consistent() -> None:
     k0 = plain.initialized()[0]
     P0_inv, M0_inv = se3_inverse(plain.at(k0).pose), se3_inverse(moved.at(k0).pose)
     for k in plain.initialized():
+        # Round-off of the world transform G (|t| ~0.4 m) as in the fixed-camera test: ~1e-14.
         np.testing.assert_allclose(moved.at(k).pose @ M0_inv,
                                    G @ plain.at(k).pose @ P0_inv @ se3_inverse(G), atol=1e-9)
 
