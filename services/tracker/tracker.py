@@ -219,7 +219,7 @@ class HandTracker:
         self._frame_id: str | None = None
         self._slot: int | None = None
         self._ekf: HandBodyEkf | None = None
-        self._template: BodyTemplate | None = None  # the body model, with the body
+        self._template: BodyTemplate | None = None  # the body model while a body is tracked
         self._memory: Array | None = None  # the last body model, for re-acquisition
         self._set_articulation(np.zeros(NUM_LANDMARKS))
         self._body_stamp_ns = 0
@@ -537,10 +537,11 @@ class HandTracker:
         residuals seed the covariance calibration (:meth:`CovarianceCalibration.seed`), and the
         initial pose fit's covariance adds to the pose block of ``P0``
         (:func:`~services.tracker.calibration.window_fit_covariance`)."""
-        ekf, body = self._ekf, self._template
-        assert ekf is not None and body is not None
-        model = np.isfinite(body.points).all(axis=1)
-        template = body.points @ ekf.T[:3, :3].T + ekf.T[:3, 3]
+        ekf = self._ekf
+        assert ekf is not None and self._template is not None
+        points_body = self._template.points
+        model = np.isfinite(points_body).all(axis=1)
+        template = points_body @ ekf.T[:3, :3].T + ekf.T[:3, 3]
         self._calibration.seed(template, model, frames)
         P_fit = window_fit_covariance(template, model, frames[-1])
         if P_fit is not None:
