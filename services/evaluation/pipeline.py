@@ -65,7 +65,7 @@ def run_pipeline(demo: Demonstration, tracker_config: TrackerConfig | None = Non
         hand = HandObservation(handedness=demo.handedness, score=float(demo.score[i]),
                                points=np.asarray(demo.points[i], float),
                                visibility=np.asarray(demo.visibility[i], float))
-        body = tracker.step(int(stamp), [hand], kinematic_prior=prior)
+        body = tracker.step(int(stamp), [hand], kinematic_prior=prior).estimate
         if body is not None and body.initialized:
             result = estimator.update(int(stamp), body.pose, body.covariance[:6, :6])
             if result.model is not None:

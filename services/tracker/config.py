@@ -52,7 +52,7 @@ Physical terms (beyond Table I)
   lateral).
 - ``template_memory_frames``, ``template_candidate_frames``: the body model (landmark
   coordinates in the body frame) is refined from every accepted frame and completed with the
-  landmarks that were not RANSAC inliers at initialisation (``HandTracker._refine_template``);
+  landmarks that were not RANSAC inliers at initialisation (``template.BodyTemplate.refine``);
   a model from a 5-frame window carries that window's (slowly varying) detector error forever.
 - ``max_correlation_factor``: the published covariance is inflated by the measured
   frame-to-frame correlation of the fit residuals (``HandTracker.correlation_factor``, typically
@@ -146,7 +146,7 @@ class TrackerConfig:
     depth_variance_factor: float = 2.0
     # Flexion std of each finger joint [rad] (articulation variance added to R_rb; 0 = rigid).
     articulation_std_rad: float = 0.15
-    # Body-model refinement (HandTracker._refine_template): running mean of each landmark's
+    # Body-model refinement (template.BodyTemplate.refine): running mean of each landmark's
     # body-frame coordinates over up to this many frames (0 = fixed at initialisation) ...
     template_memory_frames: int = 60
     # ... and landmarks outside the initial model join it after this many observations.

@@ -84,15 +84,16 @@ class TrackerNode:
         return None if self.model is None else predict_hand_pose(self.model, stamp_ns)
 
     def on_landmarks(self, message: HandLandmarks) -> None:
-        before = dict(self.tracker.rejected)
         with self.service.latency.measure("step"):
-            estimate = self.tracker.step(message.stamp_ns, observations(message),
-                                         T_world_camera=message.T_world_camera,
-                                         kinematic_prior=self._prior)
-        for reason, n in self.tracker.rejected.items():
-            if n > before.get(reason, 0):
-                self.service.reject(reason, f"landmarks at {message.stamp_ns} ns")
-        self.service.skipped = dict(self.tracker.skipped)
+            result = self.tracker.step(message.stamp_ns, observations(message),
+                                       T_world_camera=message.T_world_camera,
+                                       kinematic_prior=self._prior)
+        for reason in result.rejected:
+            self.service.reject(reason, f"landmarks at {message.stamp_ns} ns")
+        if result.reason is not None and result.skipped:
+            skipped = self.service.skipped
+            skipped[result.reason] = skipped.get(result.reason, 0) + 1
+        estimate = result.estimate
         if estimate is None:
             return
         self._maybe_save(estimate)

@@ -1,33 +1,37 @@
 """Hand tracker: 21 landmarks per frame in, hand rigid-body pose, twist and covariance out.
 
-Per accepted frame (:meth:`HandTracker.step`):
+This module orchestrates the levels, whose computations live in the modules named below; it is
+longer than the house's ~450 lines because what is left is one job, the per-frame state machine
+over the state the levels share (window, body, memory, stamps), with its interface types. Per
+accepted frame (:meth:`HandTracker.step`):
 
-1. Reject bad frames (duplicate or out-of-order stamp, bad camera pose, a change between
+1. Reject bad frames (bad, duplicate or out-of-order stamp, bad camera pose, a change between
    camera and world tracking) and bad hands (shape, handedness, non-finite visibility/score),
-   counting each in ``rejected[reason]``; nothing raises on bad data.
+   reporting each in the step's :class:`StepResult` and counting it in ``rejected[reason]``;
+   nothing raises on bad data.
 2. Transform the landmarks and the detector noise ``R_lm`` (anisotropic about each viewing ray,
    ``depth_variance_factor``) into the tracking frame ("world" when ``T_world_camera`` is given,
    else "camera") and run the landmark KFs of both hand slots (``landmarks.py``).
 3. Before initialisation: collect a window of frames of the tracked hand and try the weighted
    RANSAC initialisation (``ransac.py``); the output says ``initialized=False``. The window also
-   calibrates the new body (:meth:`HandTracker._seed_from_window`): its first published
-   covariance, the kinematic level's reference pose, is then already honest.
+   calibrates the new body (``calibration.py``): its first published covariance, the kinematic
+   level's reference pose, is then already honest.
 4. After: predict the motion models, choose, gate and correct the body EKF (``body.py``).
    The body level feeds back to the landmark level, as in OMIP: a landmark it rejects has its
    correction undone (as if the landmark gate had rejected it), and a landmark filter that
    (re)starts on the tracked hand starts with the body's velocity at that point. The body model
-   is then refined and completed from the accepted landmarks (:meth:`HandTracker.
-   _refine_template`).
+   is then refined and completed from the accepted landmarks (``template.py``).
 
 All filter covariances are physical (m^2, rad^2): Table I's values times ``variance_unit_m2``
 (``TrackerConfig.internal``). The published covariance is the filter's, scaled by the smoothed
 a-posteriori variance factor of the body fit and by the frame-to-frame correlation factor of its
-residuals (:attr:`HandTracker.variance_factor`, :attr:`HandTracker.correlation_factor`).
+residuals (``calibration.py``; :attr:`HandTracker.variance_factor`).
 
-``step`` returns None for rejected frames and for frames that carry no correction of an
-initialised body (tracked hand absent, or fewer than ``min_inliers`` usable landmarks; counted in
-``skipped``); publishing a prediction there would look like a measurement downstream. The body is
-dropped and re-initialised after ``reinit_after_s`` without a correction.
+``step`` returns a :class:`StepResult` without an estimate for rejected frames and for frames
+that carry no correction of an initialised body (tracked hand absent, or fewer than
+``min_inliers`` usable landmarks; counted in ``skipped``); publishing a prediction there would
+look like a measurement downstream. The body is dropped and re-initialised after
+``reinit_after_s`` without a correction.
 """
 
 from __future__ import annotations
@@ -36,18 +40,18 @@ import math
 from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import Literal, get_args
 
 import numpy as np
 from numpy.typing import NDArray
 
-from services.common.kabsch import weighted_kabsch
 from services.common.se3 import check_pose, skew
-from services.tracker.body import (
-    MOTION_MODELS,
-    HandBodyEkf,
-    body_noise_matrices,
-    information_sums,
-    select_and_gate,
+from services.tracker.body import MOTION_MODELS, HandBodyEkf, body_noise_matrices, select_and_gate
+from services.tracker.calibration import (
+    CovarianceCalibration,
+    WindowFrame,
+    fit_residuals,
+    window_fit_covariance,
 )
 from services.tracker.config import TrackerConfig
 from services.tracker.landmarks import (
@@ -60,6 +64,7 @@ from services.tracker.landmarks import (
     ray_measurement_covariances,
 )
 from services.tracker.ransac import initial_body, rigid_ransac
+from services.tracker.template import BodyTemplate
 
 Array = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
@@ -71,7 +76,14 @@ STATUS_USED = 1  # fresh measurement used by the body (or, before initialisation
 STATUS_OUTLIER = 2  # rejected this step (landmark gate, body gates or RANSAC)
 STATUS_EXCLUDED = 3  # the wrist, excluded by the saliency model
 
-_CHI2_3_99 = 11.345  # 99 % point of the chi-square distribution with 3 degrees of freedom
+FrameRejection = Literal["bad_stamp", "duplicate_stamp", "out_of_order_stamp", "bad_camera_pose",
+                         "frame_mismatch"]
+HandRejection = Literal["bad_hand", "bad_shape", "bad_handedness", "non_finite_visibility",
+                        "non_finite_score", "duplicate_handedness"]
+Rejection = FrameRejection | HandRejection | Literal["bad_kinematic_prior"]
+Skip = Literal["no_hand", "too_few_landmarks"]
+SKIP_REASONS: tuple[Skip, ...] = get_args(Skip)
+
 _MAX_COORD_M = 1e3  # coordinates beyond 1 km are treated as missing (keeps the numerics finite)
 _I3 = np.eye(3)
 
@@ -122,28 +134,32 @@ class HandBodyEstimate:
 
 
 @dataclass(frozen=True, eq=False)
-class _WindowFrame:
-    stamp_ns: int
-    positions: Array  # (21, 3)
-    variances: Array  # (21,) per-axis R_rb (trace / 3)
-    usable: BoolArray  # (21,)
+class StepResult:
+    """What :meth:`HandTracker.step` made of one frame.
+
+    - ``estimate``: the hand body to publish, or None.
+    - ``reason``: why there is no estimate (None when there is one): the frame was rejected
+      (a :data:`FrameRejection`), or it was accepted but carries no correction of the body
+      (a :data:`Skip`: ``no_hand``, the tracked hand is absent; ``too_few_landmarks``, fewer than
+      ``min_inliers`` usable landmarks of an initialised body).
+    - ``rejected``: every input rejected in this step, one entry per rejection, in order: the
+      frame itself (then the only entry, equal to ``reason``), or hands of an accepted frame and
+      its kinematic prior (``bad_kinematic_prior``), whether or not there is an estimate.
+    """
+
+    estimate: HandBodyEstimate | None
+    reason: FrameRejection | Skip | None = None
+    rejected: tuple[Rejection, ...] = ()
+
+    @property
+    def skipped(self) -> bool:
+        """Whether the frame was accepted but produced no estimate (``reason`` is a Skip)."""
+        return self.reason in SKIP_REASONS
 
 
 def _valid_pose(T: object) -> Array | None:
     """T as a float (4, 4) rigid transform, or None if it is not one (:func:`check_pose`)."""
     return None if check_pose(T) is not None else np.asarray(T, dtype=float)
-
-
-def robust_centre(points: Array) -> Array:
-    """A robust, rotation-equivariant centre (3,) of observations ``points`` (k, 3): the mean of
-    the half closest to the medoid (the observation with the least summed distance to the
-    others). Breakdown point 50 %, unlike the mean; unlike a coordinate-wise median it does not
-    depend on the orientation of the frame, so the body model does not either."""
-    d = np.linalg.norm(points[:, None, :] - points[None, :, :], axis=2)
-    medoid = points[int(np.argmin(d.sum(axis=1)))]
-    near = np.argsort(np.linalg.norm(points - medoid, axis=1))[:max(1, (len(points) + 1) // 2)]
-    out: Array = points[near].mean(axis=0)
-    return out
 
 
 class HandTracker:
@@ -161,6 +177,7 @@ class HandTracker:
         config = self._cfg
         self.rejected: dict[str, int] = {}
         self.skipped: dict[str, int] = {}
+        self._rejections: list[Rejection] = []  # this step's, for its StepResult
         self.reinitializations = 0
         self.reacquisitions = 0
         self.reacquire_attempts = 0
@@ -175,7 +192,8 @@ class HandTracker:
         self._saliency = np.asarray(config.saliency_factors(), dtype=float)[:, None, None]
         self._R_uniform = body_measurement_covariances(np.zeros((NUM_LANDMARKS, 3, 3)), config)
         self._R_uniform.flags.writeable = False
-        self._window: deque[_WindowFrame] = deque(maxlen=config.init_window_frames)
+        self._window: deque[WindowFrame] = deque(maxlen=config.init_window_frames)
+        self._calibration = CovarianceCalibration(config)
         self.reset()
 
     # --- public API -------------------------------------------------------------------------
@@ -189,19 +207,11 @@ class HandTracker:
         self._frame_id: str | None = None
         self._slot: int | None = None
         self._ekf: HandBodyEkf | None = None
-        self._points_body: Array | None = None
-        self._in_model = np.zeros(NUM_LANDMARKS, dtype=bool)  # finite rows of _points_body
+        self._template: BodyTemplate | None = None  # the body model while a body is tracked
         self._memory: Array | None = None  # the last body model, for re-acquisition
-        self._template_count = np.zeros(NUM_LANDMARKS)
-        self._candidates = np.full((NUM_LANDMARKS, max(1, self._cfg.template_candidate_frames), 3),
-                                   np.nan)
-        self._candidate_count = np.zeros(NUM_LANDMARKS, dtype=np.intp)
         self._set_articulation(np.zeros(NUM_LANDMARKS))
         self._body_stamp_ns = 0
-        self._variance_factor: float | None = None
-        self._last_residuals: Array | None = None
-        self._residual_cross: float | None = None
-        self._residual_power = 0.0
+        self._calibration.reset()
 
     @property
     def initialized(self) -> bool:
@@ -211,12 +221,12 @@ class HandTracker:
     @property
     def body_points(self) -> Array | None:
         """(21, 3) body-frame coordinates fixed at initialisation (NaN: not in the body model)."""
-        return None if self._points_body is None else self._points_body.copy()
+        return None if self._template is None else self._template.points.copy()
 
     def remembered_body(self) -> tuple[str, Array] | None:
         """(tracking frame id, (21, 3) body model) to persist: the current body model, else the
         one remembered for re-acquisition; None before any initialisation."""
-        points = self._points_body if self._points_body is not None else self._memory
+        points = self._template.points if self._template is not None else self._memory
         if points is None or self._frame_id is None:
             return None
         return self._frame_id, points.copy()
@@ -235,34 +245,31 @@ class HandTracker:
 
     def step(self, stamp_ns: int, hands: Sequence[HandObservation],
              T_world_camera: np.ndarray | None = None,
-             kinematic_prior: KinematicPrior | None = None) -> HandBodyEstimate | None:
-        """Process one frame of detections (see module docstring); None if nothing to report.
+             kinematic_prior: KinematicPrior | None = None) -> StepResult:
+        """Process one frame of detections (see module docstring): its estimate, or the reason
+        there is none, and what was rejected (:class:`StepResult`).
 
         ``T_world_camera``: camera pose for a moving camera (landmarks are then tracked in
         "world"). ``kinematic_prior(stamp_ns)``: (predicted ``T_frame_hand`` (4, 4), its 6x6
         left-perturbation covariance) in the tracking frame, or None.
         """
+        self._rejections = []
         if isinstance(stamp_ns, bool) or not isinstance(stamp_ns, (int, np.integer)):
-            self._reject("bad_stamp")
-            return None
+            return self._rejected_frame("bad_stamp")
         stamp_ns = int(stamp_ns)
         if self._last_stamp_ns is not None:
             if stamp_ns == self._last_stamp_ns:
-                self._reject("duplicate_stamp")
-                return None
+                return self._rejected_frame("duplicate_stamp")
             if stamp_ns < self._last_stamp_ns:
-                self._reject("out_of_order_stamp")
-                return None
+                return self._rejected_frame("out_of_order_stamp")
         T_wc: Array | None = None
         if T_world_camera is not None:
             T_wc = _valid_pose(T_world_camera)
             if T_wc is None:
-                self._reject("bad_camera_pose")
-                return None
+                return self._rejected_frame("bad_camera_pose")
         frame_id = "camera" if T_wc is None else "world"
         if self._frame_id is not None and frame_id != self._frame_id:
-            self._reject("frame_mismatch")
-            return None
+            return self._rejected_frame("frame_mismatch")
         self._frame_id = frame_id
 
         observed = self._parse_hands(hands)
@@ -285,8 +292,7 @@ class HandTracker:
                 self._window.clear()
                 if self._cfg.hand_selection == "best":
                     self._slot = None
-            self._skip("no_hand")
-            return None
+            return self._skipped("no_hand")
 
         rows = slice(slot * NUM_LANDMARKS, (slot + 1) * NUM_LANDMARKS)
         status = np.zeros(NUM_LANDMARKS, dtype=np.uint8)
@@ -301,21 +307,28 @@ class HandTracker:
         else:
             model, inputs = self._track(stamp_ns, rows, usable, status, kinematic_prior, inputs)
         if model is None:
-            return None
+            return self._skipped("too_few_landmarks")
         # Outputs after the body step (_track recomputed the inputs where a body-level
         # rejection undid a landmark correction or the articulation variances changed).
         positions, R_rb = inputs
         trace = R_rb[:, 0, 0] + R_rb[:, 1, 1] + R_rb[:, 2, 2]
         variance = np.where(self._bank.alive[rows], trace, np.nan)
-        return self._estimate(stamp_ns, positions, variance, status, model)
+        return StepResult(self._estimate(stamp_ns, positions, variance, status, model),
+                          rejected=tuple(self._rejections))
 
     # --- internals --------------------------------------------------------------------------
 
-    def _reject(self, reason: str) -> None:
+    def _reject(self, reason: Rejection) -> None:
         self.rejected[reason] = self.rejected.get(reason, 0) + 1
+        self._rejections.append(reason)
 
-    def _skip(self, reason: str) -> None:
+    def _rejected_frame(self, reason: FrameRejection) -> StepResult:
+        self._reject(reason)
+        return StepResult(None, reason, (reason,))
+
+    def _skipped(self, reason: Skip) -> StepResult:
         self.skipped[reason] = self.skipped.get(reason, 0) + 1
+        return StepResult(None, reason, tuple(self._rejections))
 
     def _parse_hands(self, hands: Sequence[HandObservation]) -> dict[int, tuple[float, Array]]:
         """Valid hands by slot: (score, points (21, 3) with NaN where missing)."""
@@ -379,11 +392,11 @@ class HandTracker:
     def _maybe_drop_body(self, stamp_ns: int) -> None:
         """Drop the body once it has gone ``reinit_after_s`` without a correction."""
         if (stamp_ns - self._body_stamp_ns) * 1e-9 >= self._cfg.reinit_after_s:
-            self._memory = self._points_body
+            self._memory = None if self._template is None else self._template.points
             self._ekf = None
-            self._points_body = None
+            self._template = None
             self._set_articulation(np.zeros(NUM_LANDMARKS))
-            self._last_residuals = None
+            self._calibration.forget_last_residuals()
             self._window.clear()
             self.reinitializations += 1
 
@@ -435,7 +448,7 @@ class HandTracker:
         :meth:`_body_inputs`. Returns the model name and the body inputs after this step."""
         positions, R_rb = inputs
         r_rb = (R_rb[:, 0, 0] + R_rb[:, 1, 1] + R_rb[:, 2, 2]) / 3.0
-        self._window.append(_WindowFrame(stamp_ns, positions, r_rb, usable.copy()))
+        self._window.append(WindowFrame(stamp_ns, positions, r_rb, usable.copy()))
         status[usable] = STATUS_USED
         cfg = self._cfg
         if len(self._window) < cfg.init_window_frames:
@@ -467,13 +480,9 @@ class HandTracker:
                 points_body = (points_body - X[:3, 3]) @ X[:3, :3]
         self._ekf = HandBodyEkf(T_frame_body, body.twist, self._P0_rb, self._Q_rb,
                                 cfg.nominal_dt_s)
-        self._points_body = points_body
-        self._in_model = np.isfinite(points_body).all(axis=1)
+        self._template = BodyTemplate(points_body, np.where(
+            np.isfinite(body.points_body).all(axis=1), float(len(frames)), 0.0), cfg)
         self._memory = None  # the body model is the memory from now on
-        self._template_count = np.where(np.isfinite(body.points_body).all(axis=1),
-                                        float(len(frames)), 0.0)
-        self._candidates[:] = np.nan
-        self._candidate_count[:] = 0
         if cfg.use_uncertainty_models:
             self._set_articulation(articulation_variances(points_body, cfg.articulation_std_rad))
             inputs = self._body_inputs(rows)
@@ -510,151 +519,33 @@ class HandTracker:
         self.reacquisitions += 1
         return result.transform
 
-    def _seed_from_window(self, frames: list[_WindowFrame]) -> None:
+    def _seed_from_window(self, frames: list[WindowFrame]) -> None:
         """Calibrate the new body from its initialisation window, so that its very first
-        published covariance (the kinematic level's reference pose) is honest.
-
-        The body model is fitted (weighted Kabsch) to every window frame; the residuals seed the
-        variance factor and the residual correlation (:meth:`_update_variance_factor`), and the
-        fit's information at the last frame, ``A = sum H_i' R_i^-1 H_i``, adds its covariance
-        ``A^-1`` to the pose block of ``P0``: the initial pose is that fit, and Table I's ``P0``
-        alone (a few mm and a degree) would claim more than a single frame of landmarks knows.
-        """
+        published covariance (the kinematic level's reference pose) is honest: the window's fit
+        residuals seed the covariance calibration (:meth:`CovarianceCalibration.seed`), and the
+        initial pose fit's covariance adds to the pose block of ``P0``
+        (:func:`~services.tracker.calibration.window_fit_covariance`)."""
         ekf = self._ekf
-        pb = self._points_body
-        assert ekf is not None and pb is not None
-        model = np.isfinite(pb).all(axis=1)
-        template = pb @ ekf.T[:3, :3].T + ekf.T[:3, 3]
-        a = self._cfg.variance_factor_smoothing
-        self._variance_factor = None
-        self._residual_cross = None
-        self._last_residuals = None
-        samples = []
-        for f in frames:
-            common = model & f.usable
-            if common.sum() < 3:
-                self._last_residuals = None
-                continue
-            w = 1.0 / f.variances[common]
-            R, t = weighted_kabsch(template[common], f.positions[common], w)
-            fitted = np.full_like(template, np.nan)
-            fitted[common] = template[common] @ R.T + t
-            residual = np.where(common[:, None], f.positions - fitted, np.nan)
-            W = np.where(common, 1.0 / f.variances, 0.0)
-            n = int(common.sum())
-            if 3 * n > 6:
-                samples.append(float(np.nansum(W[:, None] * residual * residual)) / (3 * n - 6))
-            last = self._last_residuals
-            if last is not None:
-                both = common & np.isfinite(last).all(axis=1)
-                if both.any():
-                    cross = float(np.sum(W[both, None] * residual[both] * last[both]))
-                    power = 0.5 * float(np.sum(W[both, None] * (residual[both] ** 2
-                                                                + last[both] ** 2)))
-                    if self._residual_cross is None:
-                        self._residual_cross, self._residual_power = cross, power
-                    else:
-                        self._residual_cross += a * (cross - self._residual_cross)
-                        self._residual_power += a * (power - self._residual_power)
-            self._last_residuals = residual
-        if samples:
-            self._variance_factor = float(np.mean(samples))
-        final = frames[-1]
-        use = model & final.usable
-        if use.sum() >= 3:
-            q = template[use][None]
-            A, _, _ = information_sums(q, np.zeros_like(q), 1.0 / final.variances[use])
-            try:
-                P_fit = np.linalg.inv(A[0])
-            except np.linalg.LinAlgError:
-                return
-            if np.isfinite(P_fit).all():
-                ekf.P[:6, :6] += 0.5 * (P_fit + P_fit.T)
-
-    def _update_variance_factor(self, used: NDArray[np.intp], residual: Array, d2: Array,
-                                W: Array) -> None:
-        """Track the a-posteriori variance of unit weight of the body fit and the frame-to-frame
-        correlation of its residuals.
-
-        ``sum(r_i' R_i^-1 r_i) / (3n - 6)`` over the posterior residuals ``r_i = z_i - T p_i`` of
-        the ``used`` landmarks (indices into the 21 rows; ``residual`` (n, 3), their ``d2``
-        (n,) ``= r_i' R_i^-1 r_i`` and ``W`` (n, 3, 3) ``= R_i^-1``, from
-        :meth:`_fit_residuals`) estimates how far the filter's covariances are off from
-        the data (1 when the noise model is right); it is smoothed over frames. The lag-one
-        correlation ``rho = sum r_i(t)' W_i r_i(t-1) / sum r_i' W_i r_i`` of the residuals of
-        landmarks used in both frames is smoothed the same way: detector errors and grip
-        adjustments persist over many frames (the landmark filters add some more), so
-        successive poses are not independent measurements (see :attr:`correlation_factor`).
-        """
-        n = used.size
-        if n * 3 <= 6:
-            self._last_residuals = None
-            return
-        sample = float(d2.sum()) / (3 * n - 6)
-        if not math.isfinite(sample) or sample <= 0.0:
-            return
-        a = self._cfg.variance_factor_smoothing
-        if self._variance_factor is None:
-            self._variance_factor = sample
-        else:
-            self._variance_factor += a * (sample - self._variance_factor)
-        last = self._last_residuals
-        if last is not None:
-            prev = last[used]
-            both = np.isfinite(prev).all(axis=1)
-            if both.any():
-                now, now_d2 = residual, d2
-                if not both.all():
-                    prev, now, now_d2, W = prev[both], now[both], now_d2[both], W[both]
-                W_prev = (W @ prev[:, :, None])[:, :, 0]
-                cross = float((now * W_prev).sum())  # sum r(t)' W r(t-1), W symmetric
-                power = 0.5 * (float(now_d2.sum()) + float((prev * W_prev).sum()))
-                if self._residual_cross is None:
-                    self._residual_cross, self._residual_power = cross, power
-                else:
-                    self._residual_cross += a * (cross - self._residual_cross)
-                    self._residual_power += a * (power - self._residual_power)
-        full = np.full((NUM_LANDMARKS, 3), np.nan)
-        full[used] = residual
-        self._last_residuals = full
-
-    def _fit_residuals(self, used: NDArray[np.intp], positions: Array, W: Array
-                             ) -> tuple[Array, Array]:
-        """Posterior residuals ``r_i = z_i - T p_i`` (n, 3) of the ``used`` landmarks after the
-        body correction and ``r_i' R_i^-1 r_i`` (n,), with ``W`` (n, 3, 3) ``= R_i^-1``."""
-        ekf = self._ekf
-        assert ekf is not None and self._points_body is not None
-        residual = positions[used] - (self._points_body[used] @ ekf.T[:3, :3].T + ekf.T[:3, 3])
-        d2 = (residual[:, None, :] @ W @ residual[:, :, None])[:, 0, 0]
-        return residual, d2
+        assert ekf is not None and self._template is not None
+        points_body = self._template.points
+        model = np.isfinite(points_body).all(axis=1)
+        template = points_body @ ekf.T[:3, :3].T + ekf.T[:3, 3]
+        self._calibration.seed(template, model, frames)
+        P_fit = window_fit_covariance(template, model, frames[-1])
+        if P_fit is not None:
+            ekf.P[:6, :6] += P_fit
 
     @property
     def variance_factor(self) -> float:
-        """Scale applied to the filter covariance for publication (1 when disabled or before any
-        measurement): the a-posteriori variance factor times :attr:`correlation_factor`."""
-        if not self._cfg.calibrate_covariance or self._variance_factor is None:
-            return 1.0
-        return self._variance_factor * self.correlation_factor
+        """Scale applied to the filter covariance for publication
+        (:attr:`CovarianceCalibration.variance_factor`)."""
+        return self._calibration.variance_factor
 
     @property
     def correlation_factor(self) -> float:
-        """``(1 + rho) / (1 - rho)`` for the smoothed lag-one residual correlation ``rho``
-        (clipped to [0, 1) and the factor to ``max_correlation_factor``); 1 when disabled.
-
-        For errors with an AR(1) correlation ``rho`` between frames, ``(1 + rho) / (1 - rho)``
-        is the integrated autocorrelation time in frames: averaging N such poses is worth
-        ``N (1 - rho) / (1 + rho)`` independent ones. A consumer that treats successive poses as
-        independent (the kinematic filters do) gets the right posterior uncertainty from
-        covariances inflated by this factor.
-        """
-        cfg = self._cfg
-        if (not cfg.calibrate_covariance or cfg.max_correlation_factor <= 1.0
-                or self._residual_cross is None or not self._residual_power > 0.0):
-            return 1.0
-        rho = min(max(self._residual_cross / self._residual_power, 0.0), 1.0)
-        if rho >= 1.0:
-            return cfg.max_correlation_factor
-        return min((1.0 + rho) / (1.0 - rho), cfg.max_correlation_factor)
+        """The residual correlation's share of :attr:`variance_factor`
+        (:attr:`CovarianceCalibration.correlation_factor`)."""
+        return self._calibration.correlation_factor
 
     def _kinematic(self, prior: KinematicPrior | None, stamp_ns: int
                    ) -> tuple[Array, Array] | None:
@@ -682,83 +573,26 @@ class HandTracker:
         # The prior is in the published units (metres, radians); the filter's are Table I's.
         return T, Sigma / self.variance_factor
 
-    def _refine_template(self, positions: Array, accepted: NDArray[np.intp], d2: Array,
-                         newcomers: BoolArray) -> bool:
-        """Refine the body model with this frame's landmarks (after the body correction); True
-        when the articulation variances (and with them ``R_rb``) changed.
-
-        The body-frame coordinates ``p_i`` fixed at initialisation come from a few frames of noisy
-        landmarks and from the RANSAC inliers only. Each frame, every landmark the body accepted
-        whose posterior residual is also well inside its modelled noise (``r' R_rb^-1 r`` below
-        the chi-square 99 % point for 3 DOF: the model is a long-term average and takes no
-        borderline outlier that slipped through the wider Table-I gates) adds its
-        observation ``T^-1 z_i`` to a running mean of up to
-        ``template_memory_frames`` frames; a measured landmark outside the model collects
-        observations, and joins the model at their :func:`robust_centre` (robust to the depth
-        outliers among them) after ``template_candidate_frames``. ``d2`` (n,): the accepted
-        landmarks' ``r' R_rb^-1 r`` (:meth:`_fit_residuals`). The refined model is
-        then aligned to the previous one (weighted Kabsch over the previous model's landmarks),
-        so only its shape changes: the body frame, and with it the published poses, does not
-        drift with the refinement.
-        """
-        cfg = self._cfg
-        ekf = self._ekf
-        if cfg.template_memory_frames <= 0 or ekf is None or self._points_body is None:
-            return False
-        old = self._points_body
-        R_T, t_T = ekf.T[:3, :3], ekf.T[:3, 3]
-        obs = (positions - t_T) @ R_T  # T^-1 z, row-wise
-        new = old.copy()
-        if accepted.size and cfg.use_uncertainty_models:  # an outlier gate: off in the ablation
-            accepted = accepted[d2 < _CHI2_3_99]
-        if accepted.size:
-            n = np.minimum(self._template_count[accepted] + 1.0, cfg.template_memory_frames)
-            new[accepted] += (obs[accepted] - old[accepted]) / n[:, None]
-            self._template_count[accepted] = n
-        joined = False
-        k = cfg.template_candidate_frames
-        if k > 0 and newcomers.any():
-            for j in np.flatnonzero(newcomers & np.isfinite(obs).all(axis=1)):
-                self._candidates[j, self._candidate_count[j] % k] = obs[j]
-                self._candidate_count[j] += 1
-                if self._candidate_count[j] >= k:
-                    new[j] = robust_centre(self._candidates[j])
-                    self._template_count[j] = float(k)
-                    joined = True
-        model = self._in_model
-        count = int(model.sum())
-        if count >= 3:
-            R, t = weighted_kabsch(new[model], old[model], np.ones(count))
-            new = new @ R.T + t
-        self._points_body = new
-        if not joined:
-            return False
-        self._in_model = np.isfinite(new).all(axis=1)
-        if not cfg.use_uncertainty_models:
-            return False
-        self._set_articulation(articulation_variances(new, cfg.articulation_std_rad))
-        return True
-
     def _track(self, stamp_ns: int, rows: slice, usable: BoolArray, status: NDArray[np.uint8],
                prior: KinematicPrior | None, inputs: tuple[Array, Array]
                ) -> tuple[str | None, tuple[Array, Array]]:
         """Predict, choose the motion model, gate and correct the body EKF. ``inputs``: this
         frame's :meth:`_body_inputs`.
 
-        Returns the winning model's name, or None when no correction was possible (the body may
-        then have been dropped, in which case this frame starts a new initialisation window),
-        and the body inputs after this step.
+        Returns the winning model's name, or None when the initialised body could not be
+        corrected (too few landmarks; a body dropped then instead starts a new initialisation
+        window with this frame), and the body inputs after this step.
         """
-        ekf = self._ekf
-        assert ekf is not None and self._points_body is not None
+        ekf, template = self._ekf, self._template
+        assert ekf is not None and template is not None
         cfg = self._cfg
         positions, R_rb = inputs
-        candidates = usable & self._in_model
+        candidates = usable & template.in_model
         idx = np.flatnonzero(candidates)
         if idx.size >= cfg.min_inliers:
             dt = (stamp_ns - self._body_stamp_ns) * 1e-9
             predictions = ekf.predict(dt, self._kinematic(prior, stamp_ns))
-            step = select_and_gate(predictions, positions[idx], self._points_body[idx],
+            step = select_and_gate(predictions, positions[idx], template.points[idx],
                                    R_rb[idx], cfg.mahalanobis_rb, gate=cfg.use_uncertainty_models)
             rejected = idx[step.rejected]
             status[rejected] = STATUS_OUTLIER
@@ -772,9 +606,13 @@ class HandTracker:
                 chosen = predictions[step.model]
                 ekf.update_chosen(predictions, step)
                 W = step.W[step.accepted]
-                residual, d2 = self._fit_residuals(used, positions, W)
-                self._update_variance_factor(used, residual, d2, W)
-                changed = self._refine_template(positions, used, d2, usable & ~candidates)
+                residual, d2 = fit_residuals(ekf.T, template.points, used, positions, W)
+                self._calibration.update(used, residual, d2, W)
+                changed = (template.refine(ekf.T, positions, used, d2, usable & ~candidates)
+                           and cfg.use_uncertainty_models)
+                if changed:  # a landmark joined the model: its articulation variance too
+                    self._set_articulation(articulation_variances(template.points,
+                                                                  cfg.articulation_std_rad))
                 self._body_stamp_ns = stamp_ns
                 status[used] = STATUS_USED
                 if rejected.size or changed:
@@ -782,19 +620,23 @@ class HandTracker:
                 return chosen.model, inputs
         self._maybe_drop_body(stamp_ns)
         if self._ekf is not None:
-            self._skip("too_few_landmarks")
             return None, inputs
         return self._initialise(stamp_ns, rows, usable, status, self._body_inputs(rows))
 
 
 __all__ = [
     "HANDS",
+    "SKIP_REASONS",
     "STATUS_EXCLUDED",
     "STATUS_OUTLIER",
     "STATUS_UNUSED",
     "STATUS_USED",
+    "FrameRejection",
     "HandBodyEstimate",
     "HandObservation",
+    "HandRejection",
     "HandTracker",
-    "robust_centre",
+    "Rejection",
+    "Skip",
+    "StepResult",
 ]

@@ -60,10 +60,16 @@ def revolute_twist(point: Array, axis: Array) -> Array:
 
 
 def pose_error(T_est: Array, T_true: Array) -> tuple[float, float]:
-    """(translation error of the frame origin in m, rotation angle error in rad)."""
+    """(translation error of the frame origin in m, rotation angle error in rad).
+
+    The angle is ``atan2(sin, cos)`` of the relative rotation, accurate to ~eps everywhere:
+    ``arccos`` of the trace alone is ill-conditioned near 0 (one ulp of the trace reads as
+    ``sqrt(2 eps)`` = 2.1e-8 rad)."""
     R_err = T_true[:3, :3] @ T_est[:3, :3].T
-    angle = np.arccos(np.clip(0.5 * (np.trace(R_err) - 1.0), -1.0, 1.0))
-    return float(np.linalg.norm(T_true[:3, 3] - T_est[:3, 3])), float(angle)
+    A = R_err - R_err.T  # 2 sin(angle) [axis]x
+    sin = 0.5 * float(np.linalg.norm([A[2, 1], A[0, 2], A[1, 0]]))
+    cos = 0.5 * (float(np.trace(R_err)) - 1.0)
+    return float(np.linalg.norm(T_true[:3, 3] - T_est[:3, 3])), float(np.arctan2(sin, cos))
 
 
 def landmark_error(T_est: Array, T_true: Array, points_body: Array) -> float:
@@ -172,7 +178,7 @@ def run(tracker: HandTracker, scenario: Scenario,
         T = scenario.T_frame_hand(t)
         T_wc = None if scenario.T_world_camera is None else scenario.T_world_camera(t)
         est = tracker.step(stamp, make_hands(k, T, T_wc), T_world_camera=T_wc,
-                           kinematic_prior=prior)
+                           kinematic_prior=prior).estimate
         log.stamps.append(stamp)
         log.truth.append(T)
         log.estimates.append(est)

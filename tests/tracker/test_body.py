@@ -12,16 +12,18 @@ from services.tracker.body import (
     HandBodyEkf,
     Prediction,
     body_noise_matrices,
-    information_sums,
     informative,
     innovation_covariance,
+    merge_pose,
+    select_and_gate,
+)
+from services.tracker.body_measurement import (
+    information_sums,
     log_likelihoods,
     measurement_jacobians,
-    merge_pose,
     posterior_residual_passes,
     predicted_points,
     prior_gate_passes,
-    select_and_gate,
 )
 from services.tracker.landmarks import inv_sym3
 from tests.tracker.handgen import HAND
@@ -55,6 +57,7 @@ def test_measurement_jacobian_matches_finite_differences() -> None:
     H = measurement_jacobians(h(np.zeros(6))[None])[0]
     eps = 1e-6
     J = np.column_stack([(h(eps * e) - h(-eps * e)) / (2 * eps) for e in np.eye(6)])
+    # Central differences: round-off 2.2e-16 |h| / eps (|h| ~ 2) ~ 4e-10 over a 1e-12 truncation.
     np.testing.assert_allclose(H, J, atol=1e-9)
 
 
@@ -75,6 +78,8 @@ def test_constant_velocity_transition_matches_finite_differences() -> None:
     eps = 1e-6
     J = np.column_stack([(propagate(eps * e) - propagate(-eps * e)) / (2 * eps)
                          for e in np.eye(12)])
+    # Central differences through exp/log of poses: round-off ~eps (2.2e-16) |log| (~1) / 1e-6
+    # ~ 2e-10 plus a truncation ~1e-12 times the third derivative of log(Exp(dt xi) ...).
     np.testing.assert_allclose(F, J, atol=1e-7)
 
 
@@ -95,11 +100,14 @@ def test_information_form_update_equals_textbook_stacked_update() -> None:
     H[:, :6] = measurement_jacobians(q).reshape(3 * n, 6)
     R = np.diag(np.repeat(r, 3))
     S = H @ prior.P @ H.T + R
+    # The same products in the same order: equal to ~12 eps (2.2e-16) of |S| <= 1, < 1e-14.
     np.testing.assert_allclose(S, innovation_covariance(prior, pb, r), atol=1e-14)
     K = np.linalg.solve(S, H @ prior.P).T  # K = P H' S^-1
     dx = K @ (z - q).ravel()
     I_KH = np.eye(12) - K @ H
     P_post = I_KH @ prior.P @ I_KH.T + K @ R @ K.T
+    # Two exact forms, so round-off only: the textbook one solves S (cond ~1e3), bounded by
+    # ~eps (2.2e-16) * 1e3 * |P| (~5) ~ 1e-12 (observed ~1e-13).
     np.testing.assert_allclose(ekf.T, se3_exp(dx[:6]) @ prior.T, atol=1e-12)
     np.testing.assert_allclose(ekf.xi, prior.xi + dx[6:], atol=1e-12)
     np.testing.assert_allclose(ekf.P, P_post, atol=1e-12)
@@ -121,6 +129,8 @@ def test_stacked_log_likelihood_matches_dense_gaussian() -> None:
     for m, p in enumerate(preds):
         S = innovation_covariance(p, pb, r)
         dense = multivariate_normal(mean=np.zeros(60), cov=S).logpdf((z - q[m]).ravel())
+        # Round-off of a 60-D quadratic form and log-det: ~eps (2.2e-16) * cond(S) (~1.5e3)
+        # * 60 terms ~ 2e-11 on a log-likelihood of ~40.
         assert ll[m] == pytest.approx(dense, rel=1e-10, abs=1e-8)
 
 
@@ -150,6 +160,8 @@ def test_leave_one_out_gate_equals_brute_force_refits() -> None:
         dist[i] = np.sqrt(e @ np.linalg.solve(S, e))
     assert dist[4] > 4.0  # the injected 5 cm jump stands out ...
     assert np.delete(dist, 4).max() < 2.0  # ... from 4 mm noise against a 1 cm sigma
+    # Exact booleans: the two distances agree to ~1e-13 relative (round-off), and none lies
+    # closer than 4e-4 relative to a threshold, so no decision can flip.
     for thr in (1.0, 2.0, 3.0, 5.0):
         passes = posterior_residual_passes(q, y, r, P, A_all[0], b_all[0], thr)
         np.testing.assert_array_equal(passes, dist < thr)
@@ -169,7 +181,7 @@ def test_prior_gate_equals_explicit_distances() -> None:
     H = measurement_jacobians(q)
     S = H @ P[:, None] @ H.transpose(0, 1, 3, 2) + r[:, None, None] * np.eye(3)
     d = np.sqrt(np.einsum("mni,mni->mn", y, np.linalg.solve(S, y[..., None])[..., 0]))
-    for thr in (0.1, 0.25, 0.5):
+    for thr in (0.1, 0.25, 0.5):  # exact booleans: no distance within 1 % of a threshold
         np.testing.assert_array_equal(prior_gate_passes(q, y, P, r, thr), d < thr)
 
 
@@ -192,6 +204,7 @@ def test_repeated_exact_updates_converge_to_the_truth() -> None:
     for _ in range(30):
         prior = ekf.predict(1.0 / 30.0)[0]
         ekf.update(prior, transform_points(T_true, pb), pb, np.full(20, 0.04))
+    # Noise-free Gauss-Newton steps reach the round-off floor, ~eps (2.2e-16) at |T| ~ 1.
     assert np.linalg.norm(se3_log(T_true @ se3_inverse(ekf.T))) < 1e-10
 
 
@@ -230,7 +243,8 @@ def test_kinematic_prediction_wins_when_right_and_loses_when_wrong() -> None:
     ekf = HandBodyEkf(T, np.zeros(6), 1e-6 * np.eye(12), Q, dt)
     z = transform_points(se3_exp(move) @ T, pb) + rng.normal(scale=0.002, size=pb.shape)
     right = ekf.predict(dt, (se3_exp(move) @ T, 1e-6 * np.eye(6)))
-    np.testing.assert_allclose(right[2].xi, move / dt, atol=1e-12)  # displacement / dt
+    # displacement / dt: log of a pose product, ~eps (2.2e-16) at |T| ~ 1, times 1 / dt = 30.
+    np.testing.assert_allclose(right[2].xi, move / dt, atol=1e-12)
     step = select_and_gate(right, z, pb, r, threshold=4.0, gate=True)
     assert right[step.model].model == "kinematic"
     wrong = ekf.predict(dt, (se3_exp(-move) @ T, 1e-6 * np.eye(6)))
@@ -275,19 +289,23 @@ def test_full_covariance_update_and_likelihood_equal_the_dense_forms() -> None:
     for i in range(n):
         R_dense[3 * i:3 * i + 3, 3 * i:3 * i + 3] = R[i]
     S = H @ prior.P @ H.T + R_dense
-    np.testing.assert_allclose(S, innovation_covariance(prior, pb, R), atol=1e-14)
+    np.testing.assert_allclose(S, innovation_covariance(prior, pb, R), atol=1e-14)  # as above
     W, _ = inv_sym3(R)
     A, b, c = information_sums(q[None], (z - q)[None], W)
+    # R_i^-1 by cofactors vs an LU solve: ~eps (2.2e-16) * cond(R_i) (<= ~1.4e2) per term, more
+    # in entries that cancel; 1e-9 relative stays well above.
     np.testing.assert_allclose(A[0], H[:, :6].T @ np.linalg.solve(R_dense, H[:, :6]), rtol=1e-9)
     np.testing.assert_allclose(b[0], H[:, :6].T @ np.linalg.solve(R_dense, (z - q).ravel()),
                                rtol=1e-9)
     ll = log_likelihoods(prior.P[None, :6, :6], A, b, c, float(np.log(np.linalg.det(R)).sum()), n)
     dense = multivariate_normal(mean=np.zeros(3 * n), cov=S).logpdf((z - q).ravel())
-    assert ll[0] == pytest.approx(dense, rel=1e-10, abs=1e-8)
+    assert ll[0] == pytest.approx(dense, rel=1e-10, abs=1e-8)  # round-off as in the isotropic test
     ekf.update(prior, z, pb, R)
     K = np.linalg.solve(S, H @ prior.P).T
     dx = K @ (z - q).ravel()
     I_KH = np.eye(12) - K @ H
+    # cond(S) ~3e5 here, but the error is relative to the small corrections (|dx| ~ 1e-2) and
+    # gains: ~eps (2.2e-16) * 3e5 * 1e-2 ~ 7e-13 (observed ~3e-13).
     np.testing.assert_allclose(ekf.T, se3_exp(dx[:6]) @ prior.T, atol=1e-12)
     np.testing.assert_allclose(ekf.P, I_KH @ prior.P @ I_KH.T + K @ R_dense @ K.T, atol=1e-12)
 
@@ -318,7 +336,7 @@ def test_gates_with_full_covariances_equal_explicit_distances() -> None:
         loo[i] = np.sqrt(e @ np.linalg.solve(H[i] @ np.linalg.inv(Lam) @ H[i].T + R[i], e))
         prior_d[i] = np.sqrt(y[i] @ np.linalg.solve(H[i] @ P @ H[i].T + R[i], y[i]))
     assert loo[4] > 4.0
-    for thr in (1.0, 2.0, 3.0, 5.0):
+    for thr in (1.0, 2.0, 3.0, 5.0):  # exact booleans: no distance within 3 % of a threshold
         np.testing.assert_array_equal(
             posterior_residual_passes(q, y, R, P, A_all[0], b_all[0], thr), loo < thr)
         np.testing.assert_array_equal(prior_gate_passes(q[None], y[None], P[None], R, thr)[0],

@@ -112,6 +112,7 @@ def test_internal_config_is_table_one_in_physical_units() -> None:
             bank.update(z, cfg.r_lm_m2)
         bank.predict(cfg.nominal_dt_s)
         gains.append(bank.pp[0] / (bank.pp[0] + cfg.r_lm_m2))
+    # Scale-free in exact arithmetic; the stable recursion keeps round-off at ~eps per step.
     assert gains[0] == pytest.approx(gains[1], rel=1e-12)
     # The unit reading: R_lm is the detector's lateral noise, ~7 mm per axis.
     assert np.sqrt(i.r_lm_m2) == pytest.approx(0.0071, abs=2e-4)

@@ -89,6 +89,8 @@ def test_batched_bank_equals_per_landmark_reference_kf() -> None:
                 assert upd.dropped[i] and not bank.alive[i]
                 continue
             assert bank.alive[i]
+            # The same filter in other algebra: round-off ~eps (2.2e-16) per step at |x| <~ 1,
+            # not accumulated by the stable filter (observed ~2e-16 after every step).
             np.testing.assert_allclose(bank.x[i], r.x, atol=1e-12)
             np.testing.assert_allclose(bank.covariance(i), r.P, atol=1e-12)
 
@@ -112,13 +114,14 @@ def test_outlier_skips_correction_then_landmark_is_lost_and_restarts() -> None:
     # Correction skipped: the covariance grew by one frame of Q and crossed the loss threshold.
     assert upd.dropped.tolist() == [False, True]
     assert np.isnan(bank.positions()[1]).all()
-    np.testing.assert_array_equal(bank.x[0], x_pred[0])  # z == prediction: nothing moves
+    # z == prediction: nothing moves, bit-exactly on any machine (x + K 0 = x).
+    np.testing.assert_array_equal(bank.x[0], x_pred[0])
     # The next measurement restarts the filter there, with P0 and the given start velocity.
     bank.predict(config.nominal_dt_s)
     restart = np.array([[0.0, 0.0, 0.0], [0.01, 0.02, 0.03]])
     upd = bank.update(restart, config.r_lm_m2, v_start=np.full((2, 3), 0.5))
     assert upd.fresh.all() and bank.alive.all()
-    np.testing.assert_array_equal(bank.x[1], [0.01, 0.02, 0.03, 0.5, 0.5, 0.5])
+    np.testing.assert_array_equal(bank.x[1], [0.01, 0.02, 0.03, 0.5, 0.5, 0.5])  # copied in
     np.testing.assert_allclose(bank.covariance(1), np.diag([0.09] * 3 + [0.06] * 3))
 
 
@@ -173,7 +176,7 @@ def test_reject_rolls_back_to_the_prediction() -> None:
     x_pred, pp_pred = bank.x.copy(), bank.pp.copy()
     bank.update(np.full((2, 3), 0.02), config.r_lm_m2)
     dropped = bank.reject(np.array([False, True]))
-    np.testing.assert_array_equal(bank.x[1], x_pred[1])
+    np.testing.assert_array_equal(bank.x[1], x_pred[1])  # bit-exact: the prediction is restored
     assert bank.pp[1] == pp_pred[1]
     assert dropped[1] and not bank.alive[1]  # skipping one Table-I correction loses it
     assert bank.alive[0] and bank.x[0, 0] > 0.0
@@ -199,10 +202,11 @@ def test_saliency_scales_filter_covariance_and_ablation_is_uniform() -> None:
     pp = np.linspace(0.01, 0.05, 21)
     r = body_measurement_variances(pp, config)
     np.testing.assert_allclose(r, np.asarray(config.saliency_factors()) * pp)
+    # Bit-exact on any machine: one correctly rounded IEEE multiplication each.
     assert r[8] == 0.5 * pp[8] and r[2] == 1.5 * pp[2] and r[6] == pp[6]
     assert not body_landmark_mask(config)[0] and body_landmark_mask(config)[1:].all()
     ablation = dataclasses.replace(config, use_uncertainty_models=False)
-    np.testing.assert_array_equal(body_measurement_variances(pp, ablation), 0.05)
+    np.testing.assert_array_equal(body_measurement_variances(pp, ablation), 0.05)  # a constant
     assert body_landmark_mask(ablation).all()
 
 
@@ -211,6 +215,7 @@ def test_inv_sym3_matches_numpy() -> None:
     A = rng.normal(size=(50, 3, 3))
     S = A @ A.transpose(0, 2, 1) + 0.1 * np.eye(3)
     inv, det = inv_sym3(S)
+    # Cofactors vs LU: both off by ~eps (2.2e-16) * cond(S) (S = A A' + 0.1 I: cond <~ 1e3).
     np.testing.assert_allclose(inv, np.linalg.inv(S), rtol=1e-9, atol=1e-9)
     np.testing.assert_allclose(det, np.linalg.det(S), rtol=1e-10)
 
@@ -255,7 +260,7 @@ def test_anisotropic_bank_equals_per_landmark_reference_kf() -> None:
                 assert not bank.alive[i]
                 continue
             assert bank.alive[i]
-            np.testing.assert_allclose(bank.x[i], r.x, atol=1e-12)
+            np.testing.assert_allclose(bank.x[i], r.x, atol=1e-12)  # round-off as above
             np.testing.assert_allclose(bank.covariance(i), r.P, atol=1e-12)
     assert dropped > 10  # the outliers exercised the gate and the loss threshold
 
@@ -267,6 +272,7 @@ def test_ray_covariances_are_lateral_r_and_depth_factor_r() -> None:
     R = ray_measurement_covariances(points, 2e-5, 4.0)
     for i in (0, 1, 3, 4):
         u = points[i] / np.linalg.norm(points[i])
+        # Round-off ~eps (2.2e-16) of |R| ~ 8e-5: ~2e-20, the tolerance 50x that.
         np.testing.assert_allclose(R[i] @ u, 8e-5 * u, atol=1e-18)  # along the ray: 4 r
         lateral = np.cross(u, [1.0, 0.0, 0.0])
         np.testing.assert_allclose(R[i] @ lateral, 2e-5 * lateral, atol=1e-18)
@@ -278,14 +284,14 @@ def test_ray_covariances_are_lateral_r_and_depth_factor_r() -> None:
 def test_articulation_variance_grows_along_each_finger_from_the_palm() -> None:
     pb = HAND - HAND[1:].mean(axis=0)
     var = articulation_variances(pb, 0.1)
-    assert (var[list(PALM)] == 0.0).all()
+    assert (var[list(PALM)] == 0.0).all()  # bit-exact: no joint between them and the palm
     for base in (5, 9, 13, 17):  # MCP, PIP, DIP, tip
         assert 0.0 < var[base + 1] < var[base + 2] < var[base + 3]
     # Index tip: flexion at MCP, PIP and DIP moves it by theta times its distance to each.
     expected = sum(float(np.sum((pb[8] - pb[j]) ** 2)) for j in (5, 6, 7)) * 0.01 / 3.0
     assert var[8] == pytest.approx(expected)
     assert var[2] == pytest.approx(float(np.sum((pb[2] - pb[1]) ** 2)) * 0.01 / 3.0)  # thumb MCP
-    assert (articulation_variances(pb, 0.0) == 0.0).all()
+    assert (articulation_variances(pb, 0.0) == 0.0).all()  # bit-exact: times 0
     missing = pb.copy()
     missing[6] = np.nan  # a joint outside the model contributes nothing
     assert articulation_variances(missing, 0.1)[7] == pytest.approx(
@@ -302,5 +308,5 @@ def test_body_covariances_add_articulation_and_ablation_is_uniform() -> None:
     s = np.asarray(config.saliency_factors())
     np.testing.assert_allclose(R, s[:, None, None] * P + art[:, None, None] * np.eye(3))
     ablation = dataclasses.replace(config, use_uncertainty_models=False)
-    np.testing.assert_array_equal(body_measurement_covariances(P, ablation, art),
+    np.testing.assert_array_equal(body_measurement_covariances(P, ablation, art),  # constant
                                   np.broadcast_to(0.05 * np.eye(3), (21, 3, 3)))

@@ -52,7 +52,8 @@ def test_ransac_finds_the_motion_with_thirty_percent_outliers(seed: int) -> None
     truth = np.ones(20, dtype=bool)
     truth[outliers] = False
     np.testing.assert_array_equal(result.inliers, truth)
-    # The result is the weighted fit on exactly the true inliers (the best one can do) ...
+    # The result is the weighted fit on exactly the true inliers (the best one can do): the
+    # same Kabsch on the same points, equal to round-off (as in the Kabsch test) ...
     R, t = weighted_kabsch(src[truth], dst[truth], 1.0 / (var_src + var_dst)[truth])
     np.testing.assert_allclose(result.rotation, R, atol=1e-12)
     np.testing.assert_allclose(result.translation, t, atol=1e-12)
@@ -71,6 +72,7 @@ def test_ransac_is_deterministic_for_a_seed_and_refuses_too_few_points() -> None
     runs = [rigid_ransac(src, dst, var, var, iterations=50, threshold=4.0, refinements=1,
                          rng=np.random.default_rng(42)) for _ in range(2)]
     assert runs[0] is not None and runs[1] is not None
+    # Bit-exact on any machine: the same operations on the same inputs and seed.
     np.testing.assert_array_equal(runs[0].transform, runs[1].transform)
     assert rigid_ransac(src[:2], dst[:2], var[:2], var[:2], iterations=5, threshold=4.0,
                         refinements=0, rng=rng) is None
@@ -92,7 +94,9 @@ def test_initial_body_frame_is_the_inlier_centroid_with_reference_axes() -> None
                         np.arange(W, dtype=float) * dt, inliers, motion)
     centroid = positions[-1, 1:].mean(axis=0)
     np.testing.assert_allclose(body.T_frame_body[:3, :3], np.eye(3))
+    # Noise-free window: means and aligned averages of ~1 m coordinates, round-off ~1e-15.
     np.testing.assert_allclose(body.T_frame_body[:3, 3], centroid, atol=1e-12)
     np.testing.assert_allclose(body.points_body[1:], positions[-1, 1:] - centroid, atol=1e-12)
     assert np.isnan(body.points_body[0]).all()
+    # log of the window motion over 4 dt: ~eps (2.2e-16) at |T| ~ 1 m, times 1 / (4 dt) ~ 8.
     np.testing.assert_allclose(body.twist, step / dt, atol=1e-9)

@@ -42,6 +42,8 @@ def wobble(t: float) -> np.ndarray:
 def assert_finite(est: HandBodyEstimate) -> None:
     assert np.isfinite(est.pose).all() and np.isfinite(est.twist).all()
     assert np.isfinite(est.covariance).all()
+    # Symmetric to round-off: every update symmetrises; P0's G M G' (12x12) is off by ~12 eps
+    # of its largest entry (<= ~1 m^2 even for Table I read in SI), far below 1e-12.
     np.testing.assert_allclose(est.covariance, est.covariance.T, atol=1e-12)
     assert est.landmark_points.dtype == np.float32 and est.landmark_points.shape == (21, 3)
     assert est.landmark_variance.dtype == np.float32 and est.landmark_status.dtype == np.uint8
@@ -86,7 +88,10 @@ def test_noise_free_rigid_motion_is_recovered_exactly() -> None:
         D_true = log.truth[k] @ se3_inverse(log.truth[k0])
         return hg.pose_error(log.at(k).pose, D_true @ T_est0)
 
-    assert max(max(errors(k)) for k in range(k0, 30)) < 1e-12  # before the move: exact
+    # Before the move: exact up to round-off, ~eps (2.2e-16) per frame relative to the 0.6 m
+    # coordinates, amplified ~12x into the rotation (0.6 m / 5 cm hand spread), over <= 26
+    # frames: < 1e-13 (pose_error itself is accurate to ~eps, unlike arccos of the trace).
+    assert max(max(errors(k)) for k in range(k0, 30)) < 1e-12
     assert max(errors(len(log.stamps) - 1)) < 1e-6
     assert all(e is not None and e.initialized for e in log.estimates[k0:])
 
@@ -251,12 +256,12 @@ def test_occlusion_dropout_and_bad_stamps_recover() -> None:
             vis[occluded] = 0.0
             obs = dataclasses.replace(obs, points=pts, visibility=vis)
         hands = [] if 150 <= k < 160 else [obs]  # 10 frames without any hand
-        estimates[k] = tracker.step(stamp, hands)
+        estimates[k] = tracker.step(stamp, hands).estimate
         truth[k] = T
         if k == 240:
-            assert tracker.step(stamp, [obs]) is None  # the same stamp again
+            assert tracker.step(stamp, [obs]).reason == "duplicate_stamp"  # the same stamp again
         if k == 255:
-            assert tracker.step(stamps[k - 2], [obs]) is None  # an older stamp
+            assert tracker.step(stamps[k - 2], [obs]).reason == "out_of_order_stamp"
     assert tracker.rejected == {"duplicate_stamp": 1, "out_of_order_stamp": 1}
     assert tracker.skipped == {"no_hand": 10}
     assert tracker.reinitializations == 0
@@ -302,7 +307,7 @@ def test_body_is_reinitialised_after_a_long_absence() -> None:
     for k, stamp in enumerate(scenario.stamps()):
         T = scenario.T_frame_hand(hg.Scenario.time_of(stamp))
         hands = [] if 40 <= k < 70 else [hg.observe(T, rng, NOISE_M)]  # 1 s away
-        outputs.append(tracker.step(stamp, hands))
+        outputs.append(tracker.step(stamp, hands).estimate)
     assert tracker.reinitializations == 1
     states = ["none" if o is None else ("init" if o.initialized else "wait") for o in outputs]
     assert states[4:40] == ["init"] * 36
@@ -311,6 +316,7 @@ def test_body_is_reinitialised_after_a_long_absence() -> None:
     assert set(states[74:]) == {"init"}  # ... then a new body
     waiting = outputs[70]
     assert waiting is not None
+    # Bit-exact on any machine: set to these constants while waiting, not computed.
     np.testing.assert_array_equal(waiting.pose, np.eye(4))
     np.testing.assert_array_equal(waiting.twist, np.zeros(6))
 
@@ -327,7 +333,7 @@ def _body_offsets(reacquire: bool, remembered: tuple[str, np.ndarray] | None = N
     offsets = []
     for k, stamp in enumerate(scenario.stamps()):
         T = scenario.T_frame_hand(hg.Scenario.time_of(stamp))
-        est = tracker.step(stamp, [] if 40 <= k < 70 else [hg.observe(T, rng, NOISE_M)])
+        est = tracker.step(stamp, [] if 40 <= k < 70 else [hg.observe(T, rng, NOISE_M)]).estimate
         if est is not None and est.initialized:
             offsets.append(se3_inverse(T) @ est.pose)
     return offsets, tracker
@@ -475,9 +481,12 @@ def test_moving_camera_tracks_in_the_world_frame() -> None:
         assert (a is None) == (b is None)
         if a is not None and b is not None:
             assert a.frame_id == "world"
+            # Equal but for the round-off of moving each landmark through T_world_camera, ~eps
+            # at ~1 m per frame, which the (contractive) filters do not accumulate: ~1e-14.
             np.testing.assert_allclose(a.pose, b.pose, atol=1e-9)
+            # float32 output: one ulp at ~1 m is 6e-8, the tolerance ~16 of them.
             np.testing.assert_allclose(a.landmark_points, b.landmark_points, atol=1e-6)
-    # At rest in the world, the pose does not move while the camera does.
+    # At rest in the world, the pose does not move while the camera does (round-off as above).
     still = [moving_log.at(k).pose for k in moving_log.initialized()
              if hg.Scenario.time_of(moving_log.stamps[k]) < 3.0]
     assert max(np.abs(p - still[0]).max() for p in still) < 1e-9
@@ -489,27 +498,76 @@ def test_bad_data_is_counted_and_never_raises() -> None:
     tracker = HandTracker(TrackerConfig())
     good = hg.observe(T0)
     stamp = 1_000_000_000
-    assert tracker.step(stamp, [good]) is not None
+    assert tracker.step(stamp, [good]).estimate is not None
     bad_vis = dataclasses.replace(good, visibility=np.full(21, np.nan))
     bad_shape = dataclasses.replace(good, points=np.zeros((20, 3)))
     bad_hand = dataclasses.replace(good, handedness="both")
     nan_score = dataclasses.replace(good, score=float("nan"))
     stamp += hg.FRAME_NS
-    est = tracker.step(stamp, [bad_vis, bad_shape, bad_hand, nan_score, good, good])
-    assert est is not None  # the good hand (given twice) still counts
+    result = tracker.step(stamp, [bad_vis, bad_shape, bad_hand, nan_score, good, good])
+    assert result.estimate is not None  # the good hand (given twice) still counts
+    assert result.reason is None and result.rejected == (
+        "non_finite_visibility", "bad_shape", "bad_handedness", "non_finite_score",
+        "duplicate_handedness")
     stamp += hg.FRAME_NS
-    assert tracker.step(stamp, [good], T_world_camera=np.full((4, 4), np.nan)) is None
-    assert tracker.step(stamp, [good], T_world_camera=np.eye(4)) is None  # camera -> world
-    assert tracker.step(stamp + 0.5, [good]) is None  # type: ignore[arg-type]
+    result = tracker.step(stamp, [good], T_world_camera=np.full((4, 4), np.nan))
+    assert result.estimate is None and result.reason == "bad_camera_pose"
+    result = tracker.step(stamp, [good], T_world_camera=np.eye(4))  # camera -> world
+    assert result.estimate is None and result.reason == "frame_mismatch"
+    result = tracker.step(stamp + 0.5, [good])  # type: ignore[arg-type]
+    assert result.estimate is None and result.rejected == ("bad_stamp",)
     for _ in range(10):
         stamp += hg.FRAME_NS
-        est = tracker.step(stamp, [good], kinematic_prior=lambda s: (np.eye(3), np.eye(6)))
+        est = tracker.step(stamp, [good],
+                           kinematic_prior=lambda s: (np.eye(3), np.eye(6))).estimate
     assert est is not None and est.initialized
     assert tracker.rejected == {
         "non_finite_visibility": 1, "bad_shape": 1, "bad_handedness": 1, "non_finite_score": 1,
         "duplicate_handedness": 1, "bad_camera_pose": 1, "frame_mismatch": 1, "bad_stamp": 1,
         "bad_kinematic_prior": 7}
     assert_finite(est)
+
+
+def test_step_result_names_why_there_is_no_estimate() -> None:
+    """Each frame's StepResult: the estimate, or the reason there is none (a rejected frame or
+    a skipped one), and every input rejected in that step."""
+    tracker = HandTracker(TrackerConfig())
+    good = hg.observe(T0)
+    stamp = 1_000_000_000
+    for k in range(5):  # the initialisation window, then the first initialised estimate
+        result = tracker.step(stamp + k * hg.FRAME_NS, [good])
+        assert result.estimate is not None and result.estimate.initialized == (k == 4)
+        assert result.reason is None and result.rejected == () and not result.skipped
+    stamp += 4 * hg.FRAME_NS
+
+    duplicate = tracker.step(stamp, [good])
+    assert duplicate.estimate is None and duplicate.reason == "duplicate_stamp"
+    assert duplicate.rejected == ("duplicate_stamp",) and not duplicate.skipped
+    older = tracker.step(stamp - hg.FRAME_NS, [good])
+    assert older.reason == "out_of_order_stamp" and older.rejected == ("out_of_order_stamp",)
+
+    stamp += hg.FRAME_NS
+    absent = tracker.step(stamp, [])
+    assert absent.estimate is None and absent.reason == "no_hand" and absent.skipped
+    assert absent.rejected == ()
+    stamp += hg.FRAME_NS
+    broken = tracker.step(stamp, [dataclasses.replace(good, points=np.zeros((20, 3)))])
+    assert broken.reason == "no_hand" and broken.skipped and broken.rejected == ("bad_shape",)
+
+    stamp += hg.FRAME_NS
+    few = good.visibility.copy()
+    few[4:] = 0.0  # wrist + 3 landmarks: fewer than min_inliers
+    sparse = tracker.step(stamp, [dataclasses.replace(good, visibility=few)])
+    assert sparse.estimate is None and sparse.reason == "too_few_landmarks" and sparse.skipped
+
+    stamp += hg.FRAME_NS
+    misled = tracker.step(stamp, [good], kinematic_prior=lambda s: (np.eye(3), np.eye(6)))
+    assert misled.estimate is not None and misled.estimate.initialized
+    assert misled.reason is None and misled.rejected == ("bad_kinematic_prior",)
+    # The cumulative counters agree with the results.
+    assert tracker.rejected == {"duplicate_stamp": 1, "out_of_order_stamp": 1, "bad_shape": 1,
+                                "bad_kinematic_prior": 1}
+    assert tracker.skipped == {"no_hand": 2, "too_few_landmarks": 1}
 
 
 def test_hand_selection() -> None:
@@ -519,31 +577,33 @@ def test_hand_selection() -> None:
     for selection, expected in (("best", right), ("left", left), ("right", right)):
         tracker = HandTracker(dataclasses.replace(TrackerConfig(), hand_selection=selection))
         for k in range(8):
-            est = tracker.step(1_000_000_000 + k * hg.FRAME_NS, [left, right])
+            est = tracker.step(1_000_000_000 + k * hg.FRAME_NS, [left, right]).estimate
         assert est is not None and est.initialized
+        # Noise-free and at rest the filters hold the measurement; float32 output (ulp 6e-8).
         np.testing.assert_allclose(est.landmark_points, expected.points, atol=1e-6)
     # "best" keeps the hand it started with when the other one scores higher later.
     tracker = HandTracker(TrackerConfig())
     for k in range(8):
         tracker.step(1_000_000_000 + k * hg.FRAME_NS, [left, right])
     louder = dataclasses.replace(left, score=0.99)
-    est = tracker.step(1_000_000_000 + 8 * hg.FRAME_NS, [louder, right])
+    est = tracker.step(1_000_000_000 + 8 * hg.FRAME_NS, [louder, right]).estimate
     assert est is not None
-    np.testing.assert_allclose(est.landmark_points, right.points, atol=1e-6)
+    np.testing.assert_allclose(est.landmark_points, right.points, atol=1e-6)  # float32, as above
 
 
 def test_landmark_statuses_and_ablation() -> None:
     obs = hg.observe(T0)
     tracker = HandTracker(TrackerConfig())
     for k in range(6):
-        est = tracker.step(1_000_000_000 + k * hg.FRAME_NS, [obs])
+        est = tracker.step(1_000_000_000 + k * hg.FRAME_NS, [obs]).estimate
     assert est is not None
     assert est.landmark_status[0] == STATUS_EXCLUDED
     assert (est.landmark_status[1:] == STATUS_USED).all()
     rigid = HandTracker(TrackerConfig(articulation_std_rad=0.0))
     for k in range(6):
-        est_rigid = rigid.step(1_000_000_000 + k * hg.FRAME_NS, [obs])
+        est_rigid = rigid.step(1_000_000_000 + k * hg.FRAME_NS, [obs]).estimate
     assert est_rigid is not None
+    # float32 variances: relative ulp 6e-8, the tolerance ~16 of them.
     np.testing.assert_allclose(est_rigid.landmark_variance[8] * 3.0,
                                est_rigid.landmark_variance[9],
                                rtol=1e-6)  # tip s=0.5 vs MCP s=1.5, same filter state
@@ -553,7 +613,7 @@ def test_landmark_statuses_and_ablation() -> None:
     assert est.landmark_variance[8] > est_rigid.landmark_variance[8]
     ablation = HandTracker(dataclasses.replace(TrackerConfig(), use_uncertainty_models=False))
     for k in range(6):
-        est = ablation.step(1_000_000_000 + k * hg.FRAME_NS, [obs])
+        est = ablation.step(1_000_000_000 + k * hg.FRAME_NS, [obs]).estimate
     assert est is not None
     assert (est.landmark_status == STATUS_USED).all()
     c = TrackerConfig()  # uniform R_rb = R_lm (Table I's 0.05 units, in m^2)
@@ -570,6 +630,8 @@ def test_reset_makes_runs_repeatable() -> None:
         logs.append(hg.run(tracker, scenario, noisy_hands(np.random.default_rng(8))))
     for a, b in zip(*(log.estimates for log in logs), strict=True):
         assert a is not None and b is not None
+        # Bit-exact on any machine: the same operations on the same inputs in one process; any
+        # difference is state that reset() left behind.
         np.testing.assert_array_equal(a.pose, b.pose)
         np.testing.assert_array_equal(a.covariance, b.covariance)
 
@@ -613,7 +675,7 @@ def test_random_bad_sequences_never_raise_or_emit_nan(events: list[str], seed: i
         if event in ("duplicate", "backwards"):
             stamp -= hg.FRAME_NS
         camera = np.full((4, 4), np.nan) if event == "nan_camera" else None
-        est = tracker.step(this_stamp, hands, T_world_camera=camera)
+        est = tracker.step(this_stamp, hands, T_world_camera=camera).estimate
         if est is not None:
             assert_finite(est)
             assert est.motion_model in ("static", "constant_velocity", "kinematic")
@@ -642,6 +704,7 @@ def test_moving_camera_with_anisotropic_noise_is_frame_consistent() -> None:
     k0 = plain.initialized()[0]
     P0_inv, M0_inv = se3_inverse(plain.at(k0).pose), se3_inverse(moved.at(k0).pose)
     for k in plain.initialized():
+        # Round-off of the world transform G (|t| ~0.4 m) as in the fixed-camera test: ~1e-14.
         np.testing.assert_allclose(moved.at(k).pose @ M0_inv,
                                    G @ plain.at(k).pose @ P0_inv @ se3_inverse(G), atol=1e-9)
 
@@ -712,7 +775,7 @@ def test_body_model_is_refined_and_completed() -> None:
     tracker = HandTracker(config)
     errors, poses = [], []
     for k, stamp in enumerate(hg.Scenario(lambda t: T0, 8.0).stamps()):
-        est = tracker.step(stamp, hands(k, T0, None))
+        est = tracker.step(stamp, hands(k, T0, None)).estimate
         if tracker.initialized:
             if not errors:
                 body = tracker.body_points
