@@ -266,8 +266,8 @@ class Service:
         # queryable of the service exists.
         self.bus.declare_token(self.keys.alive(self.name))
         # Which session runs the service, for peers that check who answers their queries
-        # (the robot bridge trusts model replies only from the kinematics session). A test
-        # fake without a Zenoh session has no id and declares none.
+        # (the robot bridge trusts model replies only from the kinematics session). A bus
+        # without a session id (a minimal test double) declares none.
         zid = getattr(self.bus, "zid", None)
         if isinstance(zid, str):
             self.bus.declare_token(self.keys.session(self.name, zid))

@@ -18,7 +18,7 @@ import json
 import math
 import time
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -34,7 +34,13 @@ from services.common.bus import (
 )
 from services.common.keys import Keys
 from services.common.processes import client_args
-from services.common.protocol import ArticulateRequest, ArticulateResult, RobotState, ServiceStats
+from services.common.protocol import (
+    ArticulateRequest,
+    ArticulateResult,
+    KinematicModel,
+    RobotState,
+    ServiceStats,
+)
 from services.common.provenance import sessions_of
 from tests.conftest import Processes, output_of, wait_until
 
@@ -320,6 +326,20 @@ def test_an_impostor_of_kinematics_cannot_move_the_robot(
     wait_until(lambda: len(states) >= n + 3, 10, what="robot states after the request")
     assert np.allclose(states[-1].q, q_before, atol=1e-9)
     assert all(s.mode == "idle" for s in states[n:])
+    # the router stopped it: the forged reply never reached the bridge
+    assert _bridge_stats(operator).rejected.get("untrusted_reply", 0) == 0
+
+    # the real kinematics service, under the same policy, is heard: the bridge decides on its
+    # model (no demonstration yet) exactly as on that model sent in the request
+    kin = procs.start("kinematics", *d.cli_args("kinematics"), name="kinematics")
+    wait_until(lambda: len(sessions_of(operator, KEYS, "kinematics")) == 1
+               or kin.poll() is not None, 30, what="the kinematics session token")
+    assert kin.poll() is None, output_of(kin)
+    real = KinematicModel.from_msgpack(operator.get(KEYS.kinematics_model)[0][1])
+    dry = ArticulateRequest(amount=math.pi / 4, duration_s=1.0, dry_run=True)
+    fetched = _articulate(operator, dry)
+    assert fetched.reason not in ("no_model", "dry_run")
+    assert fetched.reason == _articulate(operator, replace(dry, model=real)).reason
 
 
 def test_the_bridge_keeps_only_the_kinematics_sessions_reply(
