@@ -29,6 +29,7 @@ from services.common.bus import (
 from services.common.config import SECTIONS, ConfigError, section_from_args, to_toml
 from services.common.keys import Keys, check_rig
 from services.common.protocol import Ack, KinematicModel, ServiceStats
+from services.common.provenance import ask_service
 from services.common.recording import McapRecorder, read_recording, replay, write_recording
 from services.common.service import stop_on_signals
 from services.common.state_file import StateFileError
@@ -134,11 +135,15 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
 
 def cmd_get(args: argparse.Namespace) -> int:
+    """The model as the kinematics service's own session answers it (others are set aside)."""
     keys = Keys(args.rig)
     selector = keys.kinematics_model + ("?format=json" if args.json else "")
     with open_bus(args) as bus:
-        replies = bus.get(selector, timeout=args.timeout)
-    payload = replies[0][1]
+        answer = ask_service(bus, keys, "kinematics", selector, timeout=args.timeout)
+    for reply in answer.untrusted:
+        print(f"handkse get: ignored a reply from session {reply.replier}, which does not run "
+              "the kinematics service", file=sys.stderr)
+    payload = answer.reply.payload
     if args.json:
         print(payload.decode())
     else:

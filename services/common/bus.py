@@ -207,6 +207,16 @@ class QueryAnswer:
 QueryHandler = Callable[[QueryRequest], QueryAnswer]
 
 
+@dataclass(frozen=True)
+class Reply:
+    """One successful reply to a ``get``: its key, payload and the session id (zid, hex) of
+    the session that answered, as Zenoh reports it (None when Zenoh does not say)."""
+
+    key: str
+    payload: bytes
+    replier: str | None
+
+
 class LatestSlot:
     """Latest-only queue for camera frames: like ``RingChannel(1)``, but counts what it skips.
 
@@ -366,22 +376,21 @@ class Bus:
         passes, and :class:`BusError` with the remote message for an error reply.
         """
         replies = self.session.get(selector, payload=payload, timeout=timeout)
-        ok: list[tuple[str, bytes]] = []
-        errors: list[str] = []
-        for reply in replies:
-            if reply.ok is not None:
-                ok.append((str(reply.ok.key_expr), reply.ok.payload.to_bytes()))
-            else:
-                errors.append(reply.err.payload.to_string())
-        if ok:
-            return ok
-        if any(e.strip().lower() == "timeout" for e in errors):
-            raise QueryTimeout(f"get {selector!r}: no answer within {timeout:.1f} s")
-        if errors:
-            raise BusError(f"get {selector!r} failed: {'; '.join(errors)}")
-        raise NoResponder(f"get {selector!r}: nothing answers on this key (is the service "
-                          "running and connected to the same zenoh network?)")
+        return [(r.key, r.payload) for r in _successful(selector, replies, timeout)]
 
+    def get_replies(self, selector: str, payload: bytes | None = None, timeout: float = 2.0
+                    ) -> list[Reply]:
+        """Every successful reply to ``selector``, each with the session id of its replier.
+
+        Unlike :meth:`get`, the query goes to every matching queryable and nothing is
+        consolidated: two sessions answering on the same key give two replies, so the caller
+        can tell them apart (Zenoh's default keeps one of them, whichever). Errors as in
+        :meth:`get`.
+        """
+        replies = self.session.get(selector, payload=payload, timeout=timeout,
+                                   target=zenoh.QueryTarget.ALL,
+                                   consolidation=zenoh.ConsolidationMode.NONE)
+        return _successful(selector, replies, timeout)
     # --- liveliness ---
 
     def declare_token(self, key: str) -> Any:
@@ -402,6 +411,27 @@ class Bus:
 
         return self._keep(self.session.liveliness().declare_subscriber(
             key_expr, _guarded(key_expr, on_sample), history=history))
+
+
+def _successful(selector: str, replies: Any, timeout: float) -> list[Reply]:
+    """The successful replies of a ``get``; if there are none, the error that says why."""
+    ok: list[Reply] = []
+    errors: list[str] = []
+    for reply in replies:
+        if reply.ok is not None:
+            replier = reply.replier_id
+            ok.append(Reply(str(reply.ok.key_expr), reply.ok.payload.to_bytes(),
+                            None if replier is None else str(replier.zid)))
+        else:
+            errors.append(reply.err.payload.to_string())
+    if ok:
+        return ok
+    if any(e.strip().lower() == "timeout" for e in errors):
+        raise QueryTimeout(f"get {selector!r}: no answer within {timeout:.1f} s")
+    if errors:
+        raise BusError(f"get {selector!r} failed: {'; '.join(errors)}")
+    raise NoResponder(f"get {selector!r}: nothing answers on this key (is the service "
+                      "running and connected to the same zenoh network?)")
 
 
 def _parameters(params: Any) -> dict[str, str]:

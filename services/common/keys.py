@@ -68,6 +68,14 @@ class Keys:
     def alive(self, service: str) -> str:
         return f"{self.root}/alive/{service}"
 
+    def session(self, service: str, zid: str) -> str:
+        """Liveliness token naming the Zenoh session (id ``zid``) that runs ``service``."""
+        return f"{self.root}/alive/{service}/{zid}"
+
+    def sessions(self, service: str) -> str:
+        """Every session token of ``service`` (normally one)."""
+        return f"{self.root}/alive/{service}/*"
+
     @property
     def alive_all(self) -> str:
         return f"{self.root}/alive/*"

@@ -6,10 +6,11 @@ bus thread, the oldest sample dropped and counted when full) and handled one at 
 :meth:`Service.run`, so service logic needs no locks. A payload larger than its limit
 (:class:`ServiceLimits`) is refused on the bus thread, before it is queued.
 
-The runner declares the liveliness token ``handkse/{rig}/alive/{service}`` and the ``stats`` and
-``reset`` queryables, counts what it receives, publishes and rejects, and stops gracefully on
-SIGINT/SIGTERM. A bad message is counted in ``rejected[reason]`` and logged at
-most once per reason per second; it never stops the service.
+The runner declares the liveliness tokens ``handkse/{rig}/alive/{service}`` and
+``handkse/{rig}/alive/{service}/{zid}`` (the id of the session that runs it), the ``stats``
+queryable and the ``reset`` queryable (exact key only), counts what it receives, publishes and
+rejects, and stops gracefully on SIGINT/SIGTERM. A bad message is counted in
+``rejected[reason]`` and logged at most once per reason per second; it never stops the service.
 """
 
 from __future__ import annotations
@@ -27,7 +28,7 @@ from typing import Any, Protocol, TypeVar
 
 import numpy as np
 
-from services.common.bus import JSON, QueryAnswer, QueryRequest
+from services.common.bus import JSON, QueryAnswer, QueryRejected, QueryRequest
 from services.common.inbox import Inbox
 from services.common.keys import Keys
 from services.common.protocol import Ack, Message, ProtocolError, ServiceStats
@@ -128,7 +129,8 @@ class Service:
         self._last_log: dict[str, float] = {}
         self._reset_handlers: list[Callable[[], None]] = []
         bus.declare_queryable(keys.stats(name), self._answer_stats)
-        bus.declare_queryable(keys.reset(name), self._answer_reset)
+        bus.declare_queryable(keys.reset(name), self.exact_key_only(keys.reset(name),
+                                                                    self._answer_reset))
 
     # --- counting ---
 
@@ -204,6 +206,26 @@ class Service:
         """Run ``fn(*args)`` in the service loop (before waiting samples; never dropped)."""
         self._inbox.call_soon((fn, args))
 
+    def exact_key_only(self, key: str, handler: Callable[[QueryRequest], QueryAnswer]
+                       ) -> Callable[[QueryRequest], QueryAnswer]:
+        """``handler`` for queries on exactly ``key``; a wildcard query is refused.
+
+        For queryables that change state (reset, articulate): a ``get`` on ``handkse/{rig}/**``
+        or ``handkse/{rig}/*/reset`` reaches every queryable it intersects, and exploring the
+        keys must not reset a service or move the robot. The refusal is an error reply naming
+        the exact key, counted as ``wildcard_query``.
+        """
+
+        def answer(request: QueryRequest) -> QueryAnswer:
+            if request.key != key:
+                self.reject("wildcard_query", f"query on {request.key!r} refused: {key} "
+                            "acts only on a query for exactly its key")
+                raise QueryRejected(f"{self.name}: {key} acts only on a query for exactly "
+                                    f"this key, not {request.key!r}")
+            return handler(request)
+
+        return answer
+
     # --- queryables (run on bus threads; touch only thread-safe state) ---
 
     def _answer_stats(self, request: QueryRequest) -> QueryAnswer:
@@ -243,6 +265,12 @@ class Service:
         # The liveliness token means "ready": declared only once every subscription and
         # queryable of the service exists.
         self.bus.declare_token(self.keys.alive(self.name))
+        # Which session runs the service, for peers that check who answers their queries
+        # (the robot bridge trusts model replies only from the kinematics session). A bus
+        # without a session id (a minimal test double) declares none.
+        zid = getattr(self.bus, "zid", None)
+        if isinstance(zid, str):
+            self.bus.declare_token(self.keys.session(self.name, zid))
         next_idle = time.monotonic() + idle_period_s
         while not stop.is_set():
             event = self._inbox.take(idle_period_s)

@@ -2,10 +2,15 @@
 
 - publishes ``RobotState`` on ``handkse/{rig}/robot/state`` at ``state_rate_hz`` (wall clock),
   while idle and while articulating (``mode`` idle / articulating / fault);
-- answers ``handkse/{rig}/robot/articulate`` (``ArticulateRequest`` -> ``ArticulateResult``);
-  without a model in the request it queries the kinematics service (``get`` on
-  ``handkse/{rig}/kinematics/model``). When that query fails (the service is down, the link is
-  cut, no answer within ``model_query_timeout_s``) it falls back to the last model received
+- answers ``handkse/{rig}/robot/articulate`` (``ArticulateRequest`` -> ``ArticulateResult``)
+  on exactly that key (a wildcard query is refused, ``wildcard_query``). A model inside the
+  request is used as given: only the operator identity may send requests (router access
+  control). Without one the bridge queries the kinematics service (``get`` on
+  ``handkse/{rig}/kinematics/model``) and uses only the reply of the session that holds the
+  kinematics session token (:mod:`services.common.provenance`; other replies are counted
+  ``untrusted_reply`` and logged, disagreeing kinematics sessions ``ambiguous_reply``). When no
+  trusted answer comes (the service is down, the link is cut, no answer within
+  ``model_query_timeout_s``, only untrusted replies) it falls back to the last model received
   from the service only if that arrived within ``max_cached_model_age_s`` (default 2 s, about
   one lease); otherwise it refuses with ``stale_model`` (``no_model`` if it never had one), the
   log saying why (query error, and since when the kinematics liveliness token is gone).
@@ -30,7 +35,14 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from services.common.bus import Bus, BusError, QueryAnswer, QueryRejected, QueryRequest
+from services.common.bus import (
+    Bus,
+    BusError,
+    QueryAnswer,
+    QueryRejected,
+    QueryRequest,
+    Reply,
+)
 from services.common.bus import options_from_args as zenoh_options_from_args
 from services.common.config import section_from_args
 from services.common.keys import Keys
@@ -41,6 +53,7 @@ from services.common.protocol import (
     ProtocolError,
     RobotState,
 )
+from services.common.provenance import AmbiguousReply, QueryBus, UntrustedReply, ask_service
 from services.common.service import BusLike, Service, stop_on_signals
 from services.robot_bridge.backend import BackendState, RobotBackend
 from services.robot_bridge.config import RobotBridgeConfig, config_from_args
@@ -90,7 +103,8 @@ class RobotBridgeNode:
         self._pace: tuple[float, float] | None = None  # (wall start, backend start time)
         keys = service.keys
         service.subscribe(keys.kinematics_model, KinematicModel, self.on_model)
-        service.bus.declare_queryable(keys.robot_articulate, self.answer_articulate)
+        service.bus.declare_queryable(keys.robot_articulate, service.exact_key_only(
+            keys.robot_articulate, self.answer_articulate))
         # The real Bus watches liveliness; a minimal BusLike fake may not (state stays unknown).
         watch = getattr(service.bus, "watch_liveliness", None)
         if watch is not None:
@@ -181,6 +195,8 @@ class RobotBridgeNode:
         if self.fetch_model is not None:
             try:
                 model = self.fetch_model()
+            except UntrustedReply as exc:
+                why = f"no trustworthy answer from the kinematics service ({exc})"
             except BusError as exc:
                 why = f"kinematics service unreachable ({exc})"
             except ProtocolError as exc:
@@ -250,10 +266,43 @@ def _refusal(reason: str, detail: str = "") -> ArticulateResult:
                             mean_force_n=0.0, duration_s=0.0)
 
 
+def kinematics_model_fetcher(bus: QueryBus, keys: Keys, timeout_s: float,
+                             reject: Callable[[str, str], None]) -> ModelFetcher:
+    """Ask the kinematics service for its model; replies from any other session are set aside
+    and reported to ``reject(reason, detail)`` (``Service.reject``: counted and logged)."""
+
+    def fetch() -> KinematicModel | None:
+        try:
+            answer = ask_service(bus, keys, "kinematics", keys.kinematics_model,
+                                 timeout=timeout_s)
+        except UntrustedReply as exc:
+            _report(exc.untrusted, reject)
+            if isinstance(exc, AmbiguousReply):
+                reject("ambiguous_reply", str(exc))
+            raise
+        _report(answer.untrusted, reject)
+        return KinematicModel.from_msgpack(answer.reply.payload)
+
+    return fetch
+
+
+def _report(untrusted: tuple[Reply, ...], reject: Callable[[str, str], None]) -> None:
+    for reply in untrusted:
+        reject("untrusted_reply", f"model reply on {reply.key} from session {reply.replier}, "
+               "which does not hold the kinematics token: ignored")
+
+
 def run(bus: BusLike, keys: Keys, config: RobotBridgeConfig, backend: RobotBackend,
         stop: threading.Event, fetch_model: ModelFetcher | None = None) -> None:
-    """Run the service until ``stop`` is set (robot thread + service loop)."""
+    """Run the service until ``stop`` is set (robot thread + service loop).
+
+    Without ``fetch_model``, on a real :class:`Bus`, the bridge asks the kinematics service
+    (:func:`kinematics_model_fetcher`).
+    """
     service = Service("robot_bridge", bus, keys)
+    if fetch_model is None and isinstance(bus, Bus):
+        fetch_model = kinematics_model_fetcher(bus, keys, config.model_query_timeout_s,
+                                               service.reject)
     node = RobotBridgeNode(service, backend, config, fetch_model)
     robot = threading.Thread(target=node.run_robot, args=(stop,), name="robot", daemon=True)
     robot.start()
@@ -281,11 +330,6 @@ def main(args: argparse.Namespace) -> int:
     keys = Keys(args.rig)
     backend = make_backend(config)
     with Bus(zenoh_options_from_args(args, section_from_args(args, "zenoh"))) as bus:
-
-        def fetch() -> KinematicModel | None:
-            replies = bus.get(keys.kinematics_model, timeout=config.model_query_timeout_s)
-            return KinematicModel.from_msgpack(replies[0][1]) if replies else None
-
         print(f"robot_bridge ready ({backend.name})", flush=True)
-        run(bus, keys, config, backend, stop, fetch)
+        run(bus, keys, config, backend, stop)
     return 0

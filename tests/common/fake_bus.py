@@ -1,7 +1,7 @@
 """An in-memory stand-in for ``services.common.bus.Bus``, for unit tests of nodes.
 
 :class:`FakeBus` has the public interface of the real bus (put, subscribe, subscribe_latest,
-declare_queryable, get, declare_token, alive, watch_liveliness, close) and its observable
+declare_queryable, get, get_replies, declare_token, alive, watch_liveliness, close) and its observable
 semantics, which ``tests/common/test_bus_contract.py`` checks against both. Sessions that share
 a :class:`FakeNetwork` see each other, as sessions on one Zenoh router do.
 
@@ -43,6 +43,7 @@ from services.common.bus import (
     QueryRejected,
     QueryRequest,
     QueryTimeout,
+    Reply,
 )
 
 log = logging.getLogger(__name__)
@@ -296,6 +297,17 @@ class FakeBus:
     def get(self, selector: str, payload: bytes | None = None, timeout: float = 2.0
             ) -> list[tuple[str, bytes]]:
         """Query ``selector``; the same replies and errors as ``Bus.get``."""
+        ok: dict[str, bytes] = {}  # one reply per key: Zenoh's default consolidation
+        for reply in self._query(selector, payload, timeout):
+            ok[reply.key] = reply.payload
+        return list(ok.items())
+
+    def get_replies(self, selector: str, payload: bytes | None = None, timeout: float = 2.0
+                    ) -> list[Reply]:
+        """Every successful reply, each with its replier's zid, as ``Bus.get_replies``."""
+        return self._query(selector, payload, timeout)
+
+    def _query(self, selector: str, payload: bytes | None, timeout: float) -> list[Reply]:
         self._check_open()
         key_expr, params = split_selector(selector)
         targets = self.network.queryables(key_expr)
@@ -311,18 +323,18 @@ class FakeBus:
         for t in threads:
             t.join(max(0.0, deadline - time.monotonic()))
             late.append(t.is_alive())  # its reply, if any comes, is not part of this answer
-        ok: dict[str, bytes] = {}  # one reply per key: Zenoh's default consolidation
+        ok: list[Reply] = []
         errors: list[str] = []
-        for out, too_late in zip(replies, late, strict=True):
+        for target, out, too_late in zip(targets, replies, late, strict=True):
             for success, key, data in [] if too_late else out:
                 if success:
-                    ok[key] = data
+                    ok.append(Reply(key, data, target.bus.zid))
                 else:
                     errors.append(data.decode(errors="replace"))
         if any(late):
             errors.append(_TIMEOUT_REPLY)
         if ok:
-            return list(ok.items())
+            return ok
         if _TIMEOUT_REPLY in errors:
             raise QueryTimeout(f"get {selector!r}: no answer within {timeout:.1f} s")
         if errors:

@@ -190,6 +190,28 @@ def test_a_wildcard_get_collects_a_reply_from_every_queryable(pair: tuple[Any, A
     assert replies() == [(f"{root}/q/one", b"1"), (f"{root}/q/two", b"2")]
 
 
+def test_get_replies_keeps_every_reply_and_names_its_session(pair: tuple[Any, Any],
+                                                               root: str) -> None:
+    a, b = pair
+    key = f"{root}/two"
+    a.declare_queryable(key, lambda _r: QueryAnswer(b"a"))
+    b.declare_queryable(key, lambda _r: QueryAnswer(b"b"))
+
+    def heard() -> list[tuple[bytes, str | None]]:
+        try:
+            return sorted((r.payload, r.replier) for r in b.get_replies(key, timeout=1.0))
+        except NoResponder:
+            return []
+
+    wait_until(lambda: len(heard()) == 2, what="both queryables")
+    for _ in range(5):  # nothing consolidated away, whichever answers first
+        assert heard() == [(b"a", a.zid), (b"b", b.zid)]
+    assert {r.key for r in b.get_replies(key)} == {key}
+    assert len(b.get(key)) == 1  # while `get` keeps one reply per key
+    with pytest.raises(NoResponder):
+        b.get_replies(f"{root}/nobody", timeout=0.5)
+
+
 def test_get_without_responder_is_a_clear_error(pair: tuple[Any, Any], root: str) -> None:
     _, b = pair
     with pytest.raises(NoResponder, match="nothing answers"):

@@ -46,8 +46,11 @@ def test_only_the_operator_may_articulate_and_reset(endpoint: str) -> None:
 
         assert operator.get(KEYS.robot_articulate, timeout=2.0)[0][1] == b"moved"
         assert operator.get(KEYS.reset("kinematics"), timeout=2.0)[0][1] == b"reset"
-        # a service identity reads data but may not move the robot or reset anything
-        assert tracker.get(KEYS.kinematics_model, timeout=2.0)[0][1] == b"model"
+        # a service identity asks only for what it needs (the robot bridge: the model) and may
+        # not move the robot or reset anything (tests/deploy/test_least_privilege.py: the rest)
+        assert robot.get(KEYS.kinematics_model, timeout=2.0)[0][1] == b"model"
+        with pytest.raises(BusError):
+            tracker.get(KEYS.kinematics_model, timeout=1.0)
         with pytest.raises(BusError):
             tracker.get(KEYS.robot_articulate, timeout=1.0)
         with pytest.raises(BusError):

@@ -80,14 +80,17 @@ def test_articulate_over_zenoh_and_robot_state(procs: Processes, router: str,
     with pytest.raises(BusError, match="ArticulateRequest"):
         client_bus.get(KEYS.robot_articulate, payload=b"\x00garbage", timeout=5.0)
 
-    # without a model in the request the bridge asks the kinematics service
+    # without a model in the request the bridge asks the kinematics service (this session
+    # stands in for it: its model queryable and, as every service has, its session token)
     served = _key_model(time.time_ns())
     kinematics = client_bus.declare_queryable(
         KEYS.kinematics_model, lambda r: QueryAnswer(served.to_msgpack()))
+    session = client_bus.declare_token(KEYS.session("kinematics", client_bus.zid))
     dry = _articulate(client_bus, ArticulateRequest(amount=math.pi / 2, duration_s=2.0,
                                                     dry_run=True))
     assert dry.success and dry.reason == "dry_run" and dry.duration_s == pytest.approx(2.5)
     kinematics.undeclare()
+    session.undeclare()
     # ... and falls back to the last model published on the model key
     client_bus.put(KEYS.kinematics_model, _key_model(time.time_ns()).to_msgpack())
     dry_request = ArticulateRequest(amount=math.pi / 2, duration_s=2.0, dry_run=True)
