@@ -172,29 +172,39 @@ class Service:
                   latest: bool = False, frame: bool = False) -> None:
         """Decode every sample on ``key`` as ``message_type`` and hand it to ``handler`` in the loop.
 
-        ``latest``: only the newest unread sample matters (a prior), so a newer one replaces it.
-        ``frame``: camera frames, with the frame payload limit.
+        ``latest``: only the newest unread sample matters (a prior), so a newer valid one replaces
+        it. ``frame``: camera frames, with the frame payload limit. ``received`` counts every
+        sample on arrival; one dropped unhandled is counted in ``dropped``, an invalid one in
+        ``rejected``.
         """
         limit = self.limits.max_frame_payload_bytes if frame else self.limits.max_payload_bytes
 
-        def handle(_key: str, payload: bytes) -> None:
-            self.received += 1
+        def decode(payload: bytes) -> M | None:
             try:
-                message = message_type.from_msgpack(payload)
+                return message_type.from_msgpack(payload)
             except ProtocolError as exc:
                 self.reject(exc.reason, str(exc))
-                return
-            handler(message)
+                return None
+
+        def handle(payload: bytes) -> None:
+            message = decode(payload)
+            if message is not None:
+                handler(message)
 
         def on_sample(k: str, payload: bytes) -> None:  # on a bus thread: never blocks
+            with self._reject_lock:
+                self.received += 1
             if len(payload) > limit:
                 self.reject("too_large", f"{len(payload)} bytes on {k} (limit {limit}, "
                                          f"limits.max_{'frame_' if frame else ''}payload_bytes)")
                 return
             if latest:
-                self._inbox.put_latest(k, (handle, (k, payload)))
+                # Decoded here, so that garbage cannot evict a valid sample from the slot.
+                message = decode(payload)
+                if message is not None:
+                    self._inbox.put_latest(k, (handler, (message,)))
             else:
-                self._inbox.put(k, (handle, (k, payload)))
+                self._inbox.put(k, (handle, (payload,)))
 
         self.bus.subscribe(key, on_sample)
 

@@ -24,7 +24,7 @@ from services.common.bus import JSON, Bus, QueryAnswer, QueryRequest, options_fr
 from services.common.config import section_from_args
 from services.common.keys import Keys
 from services.common.protocol import HandBody, KinematicModel
-from services.common.service import BusLike, Service, stop_on_signals
+from services.common.service import BusLike, Service, ServiceLimits, stop_on_signals
 from services.common.state_file import StateFile
 from services.kinematics.config import KinematicsConfig
 from services.kinematics.estimator import KinematicEstimator
@@ -109,8 +109,8 @@ class KinematicsNode:
 
 
 def run(bus: BusLike, keys: Keys, config: KinematicsConfig, stop: threading.Event,
-        state_file: Path | None = None) -> None:
-    service = Service("kinematics", bus, keys)
+        state_file: Path | None = None, limits: ServiceLimits | None = None) -> None:
+    service = Service("kinematics", bus, keys, limits)
     node = KinematicsNode(service, config, state_file)
     service.run(stop)
     node.state_file.flush()
@@ -129,5 +129,5 @@ def main(args: argparse.Namespace) -> int:
     base = section_from_args(args, "zenoh")
     with Bus(options_from_args(args, base)) as bus:
         print("kinematics ready", flush=True)
-        run(bus, Keys(args.rig), config, stop, args.state_file)
+        run(bus, Keys(args.rig), config, stop, args.state_file, section_from_args(args, "limits"))
     return 0

@@ -23,7 +23,7 @@ from services.common.bus import Bus, options_from_args
 from services.common.config import section_from_args
 from services.common.keys import Keys
 from services.common.protocol import HandBody, HandLandmarks, KinematicModel, LandmarkStates
-from services.common.service import BusLike, Service, stop_on_signals
+from services.common.service import BusLike, Service, ServiceLimits, stop_on_signals
 from services.common.state_file import StateFile
 from services.kinematics.prediction import predict_hand_pose
 from services.tracker.config import TrackerConfig
@@ -140,8 +140,8 @@ class TrackerNode:
 
 
 def run(bus: BusLike, keys: Keys, config: TrackerConfig, stop: threading.Event,
-        state_file: Path | None = None) -> None:
-    service = Service("tracker", bus, keys)
+        state_file: Path | None = None, limits: ServiceLimits | None = None) -> None:
+    service = Service("tracker", bus, keys, limits)
     node = TrackerNode(service, config, state_file)
     service.run(stop)
     node.state_file.flush()
@@ -159,5 +159,5 @@ def main(args: argparse.Namespace) -> int:
     stop_on_signals(stop)
     with Bus(options_from_args(args, section_from_args(args, "zenoh"))) as bus:
         print("tracker ready", flush=True)
-        run(bus, Keys(args.rig), config, stop, args.state_file)
+        run(bus, Keys(args.rig), config, stop, args.state_file, section_from_args(args, "limits"))
     return 0

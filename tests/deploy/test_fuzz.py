@@ -267,9 +267,12 @@ def test_tracker_and_kinematics_survive_fuzzing_and_keep_serving(
     recorder = procs.start("record", str(recording), "--rig", KEYS.rig, "--key",
                            KEYS.hand_landmarks, "--count", str(len(landmark_payloads)), *z,
                            name="recorder")
-    tracker = procs.start("tracker", "--rig", KEYS.rig, *z, name="tracker")
+    # The corpus arrives faster than the services handle it; an inbox as large as the corpus
+    # keeps every payload (this test is about decoding; drops under overload are test_inbox's).
+    unbounded = ("--set", "limits.queue_size=100000")
+    tracker = procs.start("tracker", "--rig", KEYS.rig, *unbounded, *z, name="tracker")
     kinematics = procs.start("kinematics", "--rig", KEYS.rig, "--state-file",
-                             str(tmp_path / "k.state"), *z, name="kinematics")
+                             str(tmp_path / "k.state"), *unbounded, *z, name="kinematics")
     for name, p in (("recorder", recorder), ("tracker", tracker), ("kinematics", kinematics)):
         _alive(client_bus, KEYS, name, p, 30)
 
