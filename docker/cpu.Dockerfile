@@ -1,4 +1,5 @@
-# handkse CPU image: tracker, kinematics, robot bridge (MuJoCo), router helper, CLI.
+# handkse CPU image: router, tracker, kinematics, robot bridge (MuJoCo), the detector on the CPU
+# (hand models converted at build time, as in the GPU image), replay and the CLI.
 # Build from the repository root: docker build -f docker/cpu.Dockerfile -t handkse-cpu .
 FROM python:3.11.10-slim-bookworm
 
@@ -6,7 +7,8 @@ ENV PYTHONDONTWRITEBYTECODE=1 \
     PYTHONUNBUFFERED=1 \
     PIP_NO_CACHE_DIR=1 \
     PIP_DISABLE_PIP_VERSION_CHECK=1 \
-    MUJOCO_GL=disable
+    MUJOCO_GL=disable \
+    XDG_CACHE_HOME=/opt/handkse/cache
 
 RUN useradd --create-home --uid 10001 --shell /usr/sbin/nologin handkse
 WORKDIR /opt/handkse
@@ -18,6 +20,8 @@ COPY pyproject.toml README.md NOTICE ./
 COPY services ./services
 COPY bench ./bench
 RUN pip install --no-cache-dir --no-deps --no-build-isolation . \
+    && handkse models prepare \
+    && chown -R 10001:10001 /opt/handkse/cache \
     && mkdir -p /var/lib/handkse && chown 10001:10001 /var/lib/handkse
 
 USER 10001

@@ -9,15 +9,29 @@ extras are needed only by the commands that use them.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import importlib
 import json
 import logging
 import sys
 import threading
 import time
+import traceback
 from collections.abc import Callable
 from pathlib import Path
+from typing import NoReturn
 
+from services.common.arguments import (
+    non_negative_float,
+    non_negative_int,
+    object_name,
+    participant_id,
+    positive_float,
+    positive_int,
+    rig_name,
+    service_name,
+    topic_list,
+)
 from services.common.bus import (
     Bus,
     BusError,
@@ -27,10 +41,11 @@ from services.common.bus import (
     wait_for_services,
 )
 from services.common.config import SECTIONS, ConfigError, section_from_args, to_toml
-from services.common.keys import Keys, check_rig
+from services.common.errors import UserError
+from services.common.keys import Keys
 from services.common.protocol import Ack, KinematicModel, ServiceStats
 from services.common.provenance import ask_service
-from services.common.recording import McapRecorder, read_recording, replay, write_recording
+from services.common.recording import McapRecorder, read_recording, write_recording
 from services.common.service import stop_on_signals
 from services.common.state_file import StateFileError
 
@@ -41,7 +56,7 @@ Command = Callable[[argparse.Namespace], int]
 
 def _common(parser: argparse.ArgumentParser) -> None:
     add_zenoh_arguments(parser)
-    parser.add_argument("--rig", default="default", type=check_rig,
+    parser.add_argument("--rig", default="default", type=rig_name,
                         help="rig name: keys live under handkse/{rig}/ (default: default)")
     parser.add_argument("--config", metavar="FILE", help="handkse TOML config file")
     parser.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
@@ -69,6 +84,7 @@ def cmd_router(args: argparse.Namespace) -> int:
     stop = threading.Event()
     stop_on_signals(stop)
     with Bus(ZenohOptions(**{**options.__dict__, "mode": "router"})) as bus:
+        bus.declare_token(Keys(args.rig).alive("router"))  # what `handkse health router` sees
         log.info("router %s listening on %s", bus.zid, list(options.listen) or "defaults")
         print("router ready", flush=True)
         # wait with a timeout: a SIGTERM delivered to one of zenoh's threads sets ``stop`` but
@@ -105,32 +121,80 @@ def cmd_record(args: argparse.Namespace) -> int:
 
 
 def cmd_replay(args: argparse.Namespace) -> int:
-    stop = threading.Event()
-    stop_on_signals(stop)
+    from services.common.playback import (
+        PlaybackOptions,
+        play,
+        restamped,
+        select_topics,
+        target_rig,
+        wall_clock_offset,
+    )
+
+    if args.remap_rig:
+        log.warning("--remap-rig is not needed any more: a recording is published under --rig "
+                    "whenever one is given")
+    if args.synthetic and args.file:
+        raise UserError(f"give a FILE ({args.file}) or --synthetic {args.synthetic}, not both")
     if args.synthetic:
         from services.synthetic.replay import synthetic_recording
 
-        messages = synthetic_recording(args.synthetic, args.participant, args.seed, args.rig)
-        if args.save:
-            n = write_recording(args.save, ((m.key, m.payload, m.log_time_ns) for m in messages))
-            print(f"saved {n} messages to {args.save}", flush=True)
-            return 0
+        rig, remap = args.rig or "default", None
+        source = f"the synthetic {args.synthetic} demonstration"
+        messages = synthetic_recording(args.synthetic, args.participant, args.seed, rig)
     elif args.file:
+        if args.save:
+            raise UserError("--save works with --synthetic only (FILE is a recording already)")
+        source = str(args.file)
         messages = list(read_recording(args.file))
+        rig, remap = target_rig(messages, args.rig, source)
     else:
-        raise SystemExit("replay needs FILE or --synthetic OBJECT")
-    keys = Keys(args.rig)
+        raise UserError("replay needs a recording FILE or --synthetic OBJECT "
+                        "(see handkse replay --help)")
+    if not args.all_topics:
+        messages = select_topics(messages, args.topics, source)
+    if args.save:
+        if not args.keep_stamps:
+            messages = list(restamped(messages, wall_clock_offset(messages, 1.0, time.time_ns())))
+        n = write_recording(args.save, ((m.key, m.payload, m.log_time_ns) for m in messages))
+        print(f"saved {n} messages to {args.save}", flush=True)
+        return 0
+    keys = Keys(rig)
+    options = PlaybackOptions(rate=args.rate, loop=args.loop, loop_pause_s=args.loop_pause,
+                              keep_stamps=args.keep_stamps, remap_rig=remap,
+                              reset=tuple(args.reset or ()),
+                              standby_while=tuple(args.standby_while or ()))
+    stop = threading.Event()
+    stop_on_signals(stop)
     with open_bus(args) as bus:
+        bus.declare_token(keys.alive("replay"))
         if args.wait_for:
             wait_for_services(bus, keys, args.wait_for, args.wait_timeout)
-        total = 0
-        while True:
-            total += replay(messages, lambda k, p: bus.put(k, p, frame=k.endswith("/camera/rgbd")),
-                            rate=args.rate, rig=args.rig if args.remap_rig else None, stop=stop)
-            if not args.loop or stop.is_set():
-                break
+        total = play(bus, keys, messages, options, stop)
         time.sleep(0.2)  # let the last BLOCK-mode samples leave before the session closes
     print(f"replayed {total} messages", flush=True)
+    return 0
+
+
+def cmd_health(args: argparse.Namespace) -> int:
+    """Exit 0 when every named service's liveliness token is on the bus, 1 when one is not
+    within ``--timeout`` (a container health check), 2 when the bus cannot be reached."""
+    keys = Keys(args.rig)
+    timeout_ms = max(1, int(args.timeout * 1000))
+    options = dataclasses.replace(zenoh_options(args), connect_timeout_ms=timeout_ms)
+    deadline = time.monotonic() + args.timeout
+    with Bus(options) as bus:
+        while True:
+            alive = set(bus.alive(keys.alive_all, timeout=min(0.5, args.timeout)))
+            missing = [s for s in args.service if keys.alive(s) not in alive]
+            if not missing or time.monotonic() >= deadline:
+                break
+            time.sleep(0.1)
+    if missing:
+        print(f"handkse health: {', '.join(missing)} not alive on rig {keys.rig} after "
+              f"{args.timeout:g} s (is it running and connected to the same router?)",
+              file=sys.stderr)
+        return 1
+    print(f"alive: {', '.join(args.service)}", flush=True)
     return 0
 
 
@@ -231,10 +295,20 @@ def cmd_module(module_name: str) -> Command:
 # --- parser ---
 
 
+class HandkseParser(argparse.ArgumentParser):
+    """An argument parser whose errors are one line: the option, the rule, where to read more
+    (``handkse replay: --participant: must be 1..3, got 99 (see handkse replay --help)``).
+    Subcommand parsers are of this class too."""
+
+    def error(self, message: str) -> NoReturn:
+        text = " ".join(message.split()).removeprefix("argument ")
+        self.exit(2, f"{self.prog}: {text} (see {self.prog} --help)\n")
+
+
 def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     """The parser; a module command's own arguments are added only when it is the one run
     (``argv``), so listing the commands imports no optional extra."""
-    parser = argparse.ArgumentParser(prog="handkse", description=__doc__.splitlines()[0])
+    parser = HandkseParser(prog="handkse", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     def add(name: str, fn: Command, help_text: str) -> argparse.ArgumentParser:
@@ -249,46 +323,74 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     p.add_argument("file", type=Path)
     p.add_argument("--key", action="append", metavar="KEYEXPR",
                    help="key expression to record (repeatable; default handkse/{rig}/**)")
-    p.add_argument("--duration", type=float, help="stop after this many seconds")
-    p.add_argument("--count", type=int, help="stop after this many messages")
+    p.add_argument("--duration", type=positive_float, help="stop after this many seconds")
+    p.add_argument("--count", type=positive_int, help="stop after this many messages")
     p.add_argument("--foxglove", action="store_true",
                    help="also write channels in Foxglove's schemas (extra 'view'; see export)")
 
-    p = add("replay", cmd_replay, "replay an MCAP recording or a synthetic demonstration")
-    p.add_argument("file", nargs="?", type=Path)
-    p.add_argument("--rate", type=float, default=1.0,
+    p = add("replay", cmd_replay, "replay an MCAP recording or a synthetic demonstration "
+            "(source topics only, re-stamped to the wall clock)")
+    p.set_defaults(rig=None)  # None: a recording keeps the rig it was recorded on
+    next(a for a in p._actions if a.dest == "rig").help = (
+        "publish under handkse/{rig}/ (default: the recorded rig; 'default' for --synthetic)")
+    p.add_argument("file", nargs="?", type=Path, help="an MCAP recording (handkse record)")
+    p.add_argument("--rate", type=non_negative_float, default=1.0,
                    help="speed factor; 0 = as fast as possible (default 1)")
     p.add_argument("--loop", action="store_true", help="replay again and again")
-    p.add_argument("--remap-rig", action="store_true",
-                   help="publish under --rig instead of the recorded rig")
-    p.add_argument("--synthetic", metavar="OBJECT", help="generate a synthetic demonstration")
-    p.add_argument("--participant", type=int, default=3)
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--loop-pause", type=non_negative_float, default=0.0, metavar="SECONDS",
+                   help="with --loop: wait this long between passes (default 0)")
+    p.add_argument("--keep-stamps", action="store_true",
+                   help="publish the recorded stamp_ns (default: moved onto the wall clock)")
+    which = p.add_mutually_exclusive_group()
+    which.add_argument("--topics", type=topic_list, metavar="TOPIC,...",
+                       help="replay these topics (keys below the rig, e.g. hand/landmarks); "
+                            "default: the sources camera/rgbd and hand/landmarks")
+    which.add_argument("--all-topics", action="store_true",
+                       help="replay every recorded topic, results (hand/body, "
+                            "kinematics/model) included")
+    p.add_argument("--remap-rig", action="store_true", help=argparse.SUPPRESS)  # old; no-op
+    p.add_argument("--synthetic", metavar="OBJECT", type=object_name,
+                   help="generate a synthetic demonstration of this object (e.g. key)")
+    p.add_argument("--participant", type=participant_id, default=3,
+                   help="with --synthetic: participant 1..3 (default 3)")
+    p.add_argument("--seed", type=non_negative_int, default=0)
     p.add_argument("--save", type=Path, help="with --synthetic: write the MCAP file and exit")
-    p.add_argument("--wait-for", action="append", metavar="SERVICE",
+    p.add_argument("--wait-for", action="append", metavar="SERVICE", type=service_name,
                    help="wait for this service's liveliness token before publishing")
-    p.add_argument("--wait-timeout", type=float, default=30.0)
+    p.add_argument("--wait-timeout", type=positive_float, default=30.0)
+    p.add_argument("--reset", action="append", metavar="SERVICE", type=service_name,
+                   help="reset this service before every pass (repeatable)")
+    p.add_argument("--standby-while", action="append", metavar="SERVICE", type=service_name,
+                   help="publish nothing while this service is alive, e.g. a live camera "
+                        "(repeatable)")
+
+    p = add("health", cmd_health, "exit 0 if the services' liveliness tokens are on the bus "
+            "(container health checks)")
+    p.add_argument("service", nargs="+", type=service_name)
+    p.add_argument("--timeout", type=positive_float, default=5.0,
+                   help="seconds to reach the router and find the tokens (default 5)")
 
     p = add("get", cmd_get, "query the current kinematic model")
     p.add_argument("what", choices=("model",))
     p.add_argument("--json", action="store_true", help="print the JSON form")
-    p.add_argument("--timeout", type=float, default=2.0)
+    p.add_argument("--timeout", type=positive_float, default=2.0)
 
     p = add("stats", cmd_stats, "print service statistics")
-    p.add_argument("service", nargs="?")
-    p.add_argument("--timeout", type=float, default=2.0)
+    p.add_argument("service", nargs="?", type=service_name)
+    p.add_argument("--timeout", type=positive_float, default=2.0)
 
     p = add("reset", cmd_reset, "reset a service (start a new demonstration)")
-    p.add_argument("service")
-    p.add_argument("--timeout", type=float, default=5.0)
+    p.add_argument("service", type=service_name)
+    p.add_argument("--timeout", type=positive_float, default=5.0)
 
     add("config", cmd_config, "print the effective configuration as TOML")
 
     p = add("demo", cmd_demo, "run every service on loopback on one synthetic demonstration")
-    p.add_argument("--object", default="key", help="object preset (default key)")
-    p.add_argument("--participant", type=int, default=3)
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--rate", type=float, default=1.0, help="replay speed factor (default 1)")
+    p.add_argument("--object", default="key", type=object_name, help="object preset (default key)")
+    p.add_argument("--participant", type=participant_id, default=3)
+    p.add_argument("--seed", type=non_negative_int, default=0)
+    p.add_argument("--rate", type=non_negative_float, default=1.0,
+                   help="replay speed factor (default 1)")
     p.add_argument("--no-robot", action="store_true",
                    help="stop after the estimate (skip the simulated articulation)")
     p.add_argument("--view", action="store_true",
@@ -352,8 +454,10 @@ def main(argv: list[str] | None = None) -> int:
                         format="%(asctime)s %(name)s %(levelname)s %(message)s")
     try:
         return int(args.func(args))
-    except (BusError, ConfigError, StateFileError) as exc:
-        print(f"handkse {args.command}: {exc}", file=sys.stderr)
+    except (BusError, ConfigError, StateFileError, UserError) as exc:
+        if args.log_level == "DEBUG":
+            traceback.print_exc()
+        print(f"handkse {args.command}: {' '.join(str(exc).split())}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         return 130

@@ -16,6 +16,7 @@ import json
 import logging
 import math
 import os
+import re
 import threading
 import time
 from collections.abc import Callable, Sequence
@@ -24,6 +25,7 @@ from typing import Any
 
 import zenoh
 
+from services.common.errors import UserError
 from services.common.keys import Keys
 
 log = logging.getLogger(__name__)
@@ -117,9 +119,53 @@ def options_from_args(args: argparse.Namespace, base: ZenohOptions | None = None
     return o
 
 
+def _zenoh_reason(exc: Exception) -> str:
+    """Zenoh's error text without its Rust source location, on one line (``Str("unknown key")
+    at .../config.rs:86.`` -> ``unknown key``)."""
+    text = re.sub(r"\s+at \S+\.rs:\d+\.?\s*$", "", str(exc))
+    inner = re.search(r'msg: "((?:[^"\\]|\\.)*)"', text) or re.fullmatch(r'Str\("(.*)"\)', text)
+    if inner:
+        text = inner.group(1).replace("\\n", "\n").replace('\\"', '"')
+    parse = re.search(r"-->\s*(\d+):(\d+).*=\s*(.+)$", text, re.S)  # a JSON5 syntax error
+    if parse:
+        text = f"line {parse.group(1)}, column {parse.group(2)}: {parse.group(3)}"
+    return " ".join(text.split())
+
+
+def _config_from_file(path: str) -> zenoh.Config:
+    where = "(given with -c, ZENOH_CONFIG or [zenoh] config_file)"
+    if not os.path.isfile(path):
+        what = "is a folder, not a file" if os.path.isdir(path) else "does not exist"
+        raise UserError(f"zenoh config file {path} {what} {where}")
+    try:
+        return zenoh.Config.from_file(path)
+    except Exception as exc:  # zenoh raises ZError for every kind of bad file
+        raise UserError(f"zenoh config file {path} is not valid: {_zenoh_reason(exc)}") from exc
+
+
+def _insert_cfg(conf: zenoh.Config, item: str) -> None:
+    """One ``--cfg KEY:VALUE`` insertion; a bad key or value names itself."""
+    key, sep, value = item.partition(":")
+    if not sep or not key:
+        raise UserError(f"--cfg {item!r} must look like KEY:VALUE (VALUE in JSON5), e.g. "
+                        "'transport/link/tx/lease:2000'")
+    try:
+        conf.insert_json5(key, value)
+    except Exception as exc:  # zenoh raises ZError for unknown keys and bad values alike
+        reason = _zenoh_reason(exc)
+        if reason == "unknown key":
+            raise UserError(f"--cfg {item!r}: zenoh has no config key {key!r} (keys are paths "
+                            "as in Zenoh's DEFAULT_CONFIG.json5, e.g. transport/link/tx/lease)"
+                            ) from exc
+        raise UserError(f"--cfg {item!r}: bad value for {key}: {reason}") from exc
+
+
 def zenoh_config(o: ZenohOptions) -> zenoh.Config:
-    """Build a ``zenoh.Config``: the JSON5 file (if any), then the explicit options on top."""
-    conf = zenoh.Config.from_file(o.config_file) if o.config_file else zenoh.Config()
+    """Build a ``zenoh.Config``: the JSON5 file (if any), then the explicit options on top.
+
+    A missing or invalid file and a bad ``--cfg`` item raise :class:`UserError` naming them.
+    """
+    conf = _config_from_file(o.config_file) if o.config_file else zenoh.Config()
 
     def put(path: str, value: Any) -> None:
         conf.insert_json5(path, json.dumps(value))
@@ -141,10 +187,7 @@ def zenoh_config(o: ZenohOptions) -> zenoh.Config:
     if o.shared_memory is not None:
         put("transport/shared_memory/enabled", o.shared_memory)
     for item in o.cfg:
-        key, sep, value = item.partition(":")
-        if not sep or not key:
-            raise ValueError(f"--cfg {item!r} must look like KEY:VALUE (VALUE in JSON5)")
-        conf.insert_json5(key, value)
+        _insert_cfg(conf, item)
     return conf
 
 
@@ -261,8 +304,9 @@ class Bus:
 
     def __init__(self, options: ZenohOptions | None = None) -> None:
         self.options = options or ZenohOptions()
+        conf = zenoh_config(self.options)  # a UserError here names the file or --cfg item
         try:
-            self.session = zenoh.open(zenoh_config(self.options))
+            self.session = zenoh.open(conf)
         except Exception as exc:
             raise BusError(f"cannot open zenoh session ({self.options.mode}, connect="
                            f"{list(self.options.connect)}, listen={list(self.options.listen)}): "

@@ -144,6 +144,28 @@ def peek_envelope(payload: bytes) -> tuple[str | None, int | None]:
             stamp if isinstance(stamp, int) and not isinstance(stamp, bool) else None)
 
 
+def restamp(payload: bytes, offset_ns: int) -> bytes:
+    """``payload`` with its envelope ``stamp_ns`` moved by ``offset_ns`` (replays onto the wall
+    clock); every other key is kept as it was, unknown ones included.
+
+    A payload that is not a msgpack map, has no integer ``stamp_ns``, or has the placeholder
+    stamp 0 (``Ack``, ``ServiceStats``, the empty model) comes back unchanged, as does one whose
+    new stamp would leave msgpack's unsigned 64-bit range.
+    """
+    try:
+        obj = _unpack(payload, "payload")
+    except ProtocolError:
+        return payload
+    if not isinstance(obj, dict):
+        return payload
+    stamp = obj.get("stamp_ns")
+    if isinstance(stamp, bool) or not isinstance(stamp, int) or stamp <= 0 \
+            or not 0 <= stamp + offset_ns < 2**64:
+        return payload
+    obj["stamp_ns"] = stamp + offset_ns
+    return _pack(obj)
+
+
 _DTYPES: dict[str, np.dtype[Any]] = {}
 
 

@@ -9,7 +9,11 @@ adds channels in Foxglove's own protobuf schemas beside them (:meth:`McapRecorde
 :mod:`services.view.foxglove_scene`).
 
 Replay publishes every message on its key (optionally remapped to another rig) at the
-original pace, at ``rate`` times that pace, or as fast as possible (``rate=0``).
+original pace, at ``rate`` times that pace, or as fast as possible (``rate=0``); what to replay
+and with which stamps is :mod:`services.common.playback`'s job.
+
+A file that does not exist, is not MCAP or is damaged, and a path that cannot be written, raise
+:class:`RecordingError` naming the file.
 """
 
 from __future__ import annotations
@@ -19,11 +23,12 @@ import time
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import BinaryIO
+from typing import BinaryIO, Protocol
 
 from mcap.reader import make_reader
 from mcap.writer import Writer
 
+from services.common.errors import UserError
 from services.common.keys import remap_rig
 from services.common.protocol import peek_envelope
 
@@ -31,6 +36,10 @@ SCHEMA_ENCODING = "handkse"
 MESSAGE_ENCODING = "msgpack"
 PROFILE = "handkse"
 _SCHEMA_DATA = b"handkse wire protocol v1: msgpack map, see docs/protocol.md"
+
+
+class RecordingError(UserError):
+    """A recording that cannot be read or written; the message names the file and the fix."""
 
 
 @dataclass(frozen=True)
@@ -58,7 +67,7 @@ class McapRecorder:
 
     def __init__(self, path: str | Path) -> None:
         self.path = Path(path)
-        self._file: BinaryIO = open(self.path, "wb")  # noqa: SIM115 - closed in close()
+        self._file: BinaryIO = _open_for_writing(self.path)
         self._writer = Writer(self._file)
         self._writer.start(profile=PROFILE, library="handkse")
         self._schemas: dict[str, int] = {}
@@ -131,18 +140,56 @@ class McapRecorder:
             self._file.close()
 
 
+def _open_for_writing(path: Path) -> BinaryIO:
+    try:
+        return open(path, "wb")
+    except FileNotFoundError:
+        raise RecordingError(f"cannot write the recording {path}: the folder {path.parent} "
+                             "does not exist (create it first)") from None
+    except IsADirectoryError:
+        raise RecordingError(f"cannot write the recording {path}: it is a folder; give a file "
+                             f"name such as {path / 'session.mcap'}") from None
+    except PermissionError:
+        raise RecordingError(f"cannot write the recording {path}: permission denied "
+                             "(choose a folder you can write to)") from None
+
+
+_MCAP_MAGIC = b"\x89MCAP0\r\n"
+
+
 def read_recording(path: str | Path) -> Iterator[RecordedMessage]:
     """The handkse messages (msgpack channels) of an MCAP file in log-time order; channels in
-    other encodings (the Foxglove channels of an exported file) are skipped."""
-    with open(path, "rb") as f:
-        reader = make_reader(f)
-        for schema, channel, message in reader.iter_messages(log_time_order=True):
-            if channel.message_encoding != MESSAGE_ENCODING:
-                continue
-            yield RecordedMessage(key=channel.topic, payload=message.data,
-                                  log_time_ns=message.log_time,
-                                  publish_time_ns=message.publish_time,
-                                  schema=schema.name if schema is not None else "")
+    other encodings (the Foxglove channels of an exported file) are skipped.
+
+    Raises :class:`RecordingError` for a file that does not exist, is not MCAP, or is damaged
+    (a recorder killed before it finished leaves a file without its index).
+    """
+    path = Path(path)
+    try:
+        f = open(path, "rb")  # noqa: SIM115 - closed below
+    except FileNotFoundError:
+        raise RecordingError(f"recording {path} does not exist") from None
+    except IsADirectoryError:
+        raise RecordingError(f"recording {path} is a folder, not an MCAP file") from None
+    except PermissionError:
+        raise RecordingError(f"recording {path}: permission denied") from None
+    with f:
+        if f.read(len(_MCAP_MAGIC)) != _MCAP_MAGIC:
+            raise RecordingError(f"{path} is not an MCAP recording (it does not start with the "
+                                 "MCAP magic bytes); record one with `handkse record`")
+        f.seek(0)
+        try:
+            reader = make_reader(f)
+            for schema, channel, message in reader.iter_messages(log_time_order=True):
+                if channel.message_encoding != MESSAGE_ENCODING:
+                    continue
+                yield RecordedMessage(key=channel.topic, payload=message.data,
+                                      log_time_ns=message.log_time,
+                                      publish_time_ns=message.publish_time,
+                                      schema=schema.name if schema is not None else "")
+        except Exception as exc:  # the mcap reader raises many types for one cause: bad bytes
+            raise RecordingError(f"recording {path} is damaged or incomplete ({exc}); a recorder "
+                                 "stopped with kill -9 leaves an unfinished file") from exc
 
 
 def write_recording(path: str | Path, messages: Iterable[tuple[str, bytes, int]]) -> int:
@@ -156,8 +203,14 @@ def write_recording(path: str | Path, messages: Iterable[tuple[str, bytes, int]]
 _SPIN_S = 0.0005  # replay spins this long before each message, sleeps before that
 
 
+class StopFlag(Protocol):
+    """Anything with ``is_set()`` (a ``threading.Event``, or several of them combined)."""
+
+    def is_set(self) -> bool: ...
+
+
 def replay(messages: Iterable[RecordedMessage], publish: Callable[[str, bytes], None], *,
-           rate: float = 1.0, rig: str | None = None, stop: threading.Event | None = None
+           rate: float = 1.0, rig: str | None = None, stop: StopFlag | None = None
            ) -> int:
     """Publish recorded messages with their original spacing scaled by ``1/rate``.
 

@@ -47,6 +47,9 @@ from services.synthetic.objects import OBJECTS, ObjectPreset, preset
 
 Array = NDArray[np.float64]
 
+# The paper's participants (section IV.A.3): 1 and 2 for tuning, 3 for evaluation. The hand model
+# takes any id >= 1; the command line offers these three.
+PARTICIPANTS: tuple[int, ...] = (1, 2, 3)
 TUNING_OBJECTS: tuple[str, ...] = ("valve", "tension_belt", "window_lock", "flap_latch")
 TUNING_SPLIT: list[tuple[str, int]] = [(o, p) for o in TUNING_OBJECTS for p in (1, 2)]
 EVALUATION_SPLIT: list[tuple[str, int]] = [(o, 3) for o in OBJECTS]

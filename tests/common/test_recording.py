@@ -68,7 +68,9 @@ def record_replay(procs: Processes, router: str, tmp_path: Path,
     rec = procs.start("record", str(out), "--rig", KEYS.rig, "--count", str(len(msgs)), *z,
                       name="record")
     wait_until(lambda: "recording" in output_of(rec), 20, what="recorder ready")
-    play = procs.run("replay", str(source), "--rig", KEYS.rig, "--wait-for", "recorder", *z)
+    # every topic with its recorded stamps, under the recorded rig (no --rig)
+    play = procs.run("replay", str(source), "--all-topics", "--keep-stamps", "--wait-for",
+                     "recorder", *z)
     assert play.returncode == 0, play.stdout + play.stderr
     assert f"replayed {len(msgs)} messages" in play.stdout
     rec.wait(20)

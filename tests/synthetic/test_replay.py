@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 
 import numpy as np
@@ -10,7 +11,7 @@ from services.common.protocol import HandLandmarks
 from services.common.recording import read_recording
 from services.synthetic.generator import generate
 from services.synthetic.replay import landmark_messages
-from tests.conftest import Processes, output_of, wait_until, zenoh_args
+from tests.conftest import Processes
 
 
 def test_messages_carry_the_stream_exactly() -> None:
@@ -24,28 +25,24 @@ def test_messages_carry_the_stream_exactly() -> None:
 
 
 def test_save_as_mcap(procs: Processes, tmp_path: Path) -> None:
-    out = tmp_path / "key.mcap"
-    result = procs.run("replay", "--synthetic", "key", "--participant", "2", "--save", str(out),
-                       "--rig", "lab")
-    assert result.returncode == 0, result.stderr
-    recorded = list(read_recording(out))
+    """``--save`` writes what a replay would publish: re-stamped to now by default."""
     demo = generate("key", 2, 0)
-    assert len(recorded) == len(demo)
-    assert {r.key for r in recorded} == {"handkse/lab/hand/landmarks"}
-    assert [r.publish_time_ns for r in recorded] == demo.stamps_ns.tolist()
-    assert recorded[0].schema == "handkse.HandLandmarks/1"
-
-
-def test_replay_synthetic_over_the_bus(procs: Processes, router: str, tmp_path: Path) -> None:
-    out = tmp_path / "rec.mcap"
-    demo = generate("bolt", 3, 0)
-    z = zenoh_args(router)
-    rec = procs.start("record", str(out), "--rig", "syn", "--count", str(len(demo)), *z,
-                      name="record")
-    wait_until(lambda: "recording" in output_of(rec), 20, what="recorder ready")
-    play = procs.run("replay", "--synthetic", "bolt", "--rig", "syn", "--rate", "0",
-                     "--wait-for", "recorder", *z)
-    assert play.returncode == 0, play.stdout + play.stderr
-    rec.wait(20)
-    got = [HandLandmarks.from_msgpack(r.payload) for r in read_recording(out)]
-    assert [m.stamp_ns for m in got] == demo.stamps_ns.tolist()
+    for keep in (True, False):
+        out = tmp_path / f"key-{keep}.mcap"
+        before = time.time_ns()
+        result = procs.run("replay", "--synthetic", "key", "--participant", "2", "--save",
+                           str(out), "--rig", "lab", *(["--keep-stamps"] if keep else []))
+        after = time.time_ns()
+        assert result.returncode == 0, result.stderr
+        recorded = list(read_recording(out))
+        assert len(recorded) == len(demo)
+        assert {r.key for r in recorded} == {"handkse/lab/hand/landmarks"}
+        assert recorded[0].schema == "handkse.HandLandmarks/1"
+        stamps = np.array([HandLandmarks.from_msgpack(r.payload).stamp_ns for r in recorded])
+        assert [r.publish_time_ns for r in recorded] == stamps.tolist()
+        assert [r.log_time_ns for r in recorded] == stamps.tolist()
+        if keep:
+            assert stamps.tolist() == demo.stamps_ns.tolist()
+        else:
+            assert before <= stamps[0] <= after
+            np.testing.assert_array_equal(np.diff(stamps), np.diff(demo.stamps_ns))
