@@ -6,7 +6,8 @@ import re
 from dataclasses import dataclass
 
 PREFIX = "handkse"
-SERVICES = ("camera", "detector", "tracker", "kinematics", "robot_bridge", "replay", "recorder", "router")
+SERVICES = ("camera", "detector", "tracker", "kinematics", "robot_bridge", "replay", "recorder", "router",
+            "view")
 _RIG_NAME = re.compile(r"^[A-Za-z0-9_-]+$")
 
 

@@ -161,7 +161,8 @@ def test_record_foxglove_writes_the_channels_live(procs: Processes, router: str,
                       name="record")
     wait_until(lambda: "recording" in output_of(rec) or rec.poll() is not None, 30,
                what="recorder ready")
-    play = procs.run("replay", str(source), "--rate", "0", "--wait-for", "recorder", *z)
+    play = procs.run("replay", str(source), "--rate", "0", "--all-topics", "--keep-stamps",
+                     "--wait-for", "recorder", *z)
     assert play.returncode == 0, play.stdout + play.stderr
     assert rec.wait(30) == 0, output_of(rec)
     assert len(list(read_recording(out))) == len(messages)
