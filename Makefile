@@ -8,7 +8,7 @@ PYTHON ?= python3
 VENV   := .venv
 BIN    := $(VENV)/bin
 # Extras installed for development; the lock covers exactly these (plus the build tools).
-EXTRAS ?= dev,eval,robot,detector,tune
+EXTRAS ?= dev,eval,robot,detector,tune,view
 LOCK   := requirements/dev.lock
 STAMP  := $(VENV)/.installed
 PIP    := $(BIN)/python -m pip --disable-pip-version-check
@@ -52,12 +52,14 @@ lock:
 comma := ,
 
 # As root on a machine without them (a fresh Debian CI runner), install the system tools the
-# deployment tests use: ip (network namespaces) and openssl (TLS certificates). Otherwise those
-# tests skip with the reason.
+# tests use: ip (network namespaces) and openssl (TLS certificates) for the deployment tests,
+# chromium for the web viewer test. Otherwise those tests skip with the reason.
+SYSTEM_TOOLS := ip:iproute2 openssl:openssl chromium:chromium
 test: install lint
-	@if [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null && \
-	    { ! command -v ip >/dev/null || ! command -v openssl >/dev/null; }; then \
-	  apt-get update -qq && apt-get install -y -qq --no-install-recommends iproute2 openssl; fi
+	@missing=""; for t in $(SYSTEM_TOOLS); do command -v $${t%%:*} >/dev/null || missing="$$missing $${t#*:}"; done; \
+	if [ -n "$$missing" ] && [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null; then \
+	  echo "installing$$missing"; \
+	  apt-get update -qq && apt-get install -y -qq --no-install-recommends $$missing; fi
 	$(BIN)/python -m pytest -q
 
 # The suite against the newest releases pyproject.toml allows, in a throw-away venv.

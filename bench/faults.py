@@ -1,10 +1,11 @@
 """Fault benchmark (issue 8): recovery times of the pipeline on one host.
 
-Runs the drills of :mod:`services.faults` (the ones ``tests/deploy/test_faults.py`` asserts):
-kill -9 and restart the kinematics service and the tracker, kill -9 and restart the router,
-cut the link to the tracker and kinematics for 3 s and 15 s, each in the middle of the flap
-latch demonstration (participant 3) replayed at 2.5 x real time, every session with a 2 s
-lease, ``repeats`` times in one rig, each pass starting with an uninterrupted run.
+Runs the drills of :mod:`services.evaluation.drills.faults` (the ones
+``tests/deploy/test_faults.py`` asserts): kill -9 and restart the kinematics service and the
+tracker, kill -9 and restart the router, cut the link to the tracker and kinematics for 3 s and
+15 s, each in the middle of the flap latch demonstration (participant 3) replayed at 2.5 x real
+time, every session with a 2 s lease, ``repeats`` times in one rig, each pass starting with an
+uninterrupted run.
 
 Per fault, one value per run (seconds; monotonic clock of the observer):
 
@@ -28,7 +29,7 @@ from pathlib import Path
 from typing import Any
 
 from bench.common import write_result
-from services.faults import LEASE_MS, Fault, FaultReport, FaultRig, run_scenario
+from services.evaluation.drills.faults import LEASE_MS, Fault, FaultReport, FaultRig, run_scenario
 from services.synthetic.generator import generate
 
 OBJECT, PARTICIPANT, SEED = "flap_latch", 3, 0

@@ -53,14 +53,14 @@ def main() -> None:
         if i == 1800:
             rss_mid = _rss_mib()
     rss1 = _rss_mib()
-    belief = est.belief
+    model = est.model
     write_result("kinematics", {
         "update_latency_ms": percentiles_ms(times),
         "updates": len(times),
         "rss_mib": {"start": round(rss0, 1), "after_1_min": round(rss_mid, 1),
                     "after_10_min": round(rss1, 1)},
-        "final_type": belief.type,
-        "final_probabilities": {k: round(v, 4) for k, v in belief.probabilities.items()},
+        "final_type": model.type,
+        "final_probabilities": {k: round(v, 4) for k, v in model.probabilities.items()},
         "goal": "p50 <= 0.3 ms, bounded memory",
     })
 

@@ -15,7 +15,7 @@ does between demonstrations.
 This process only observes: per rig it subscribes to landmarks, hand bodies and models and takes
 ``time.time_ns()`` first thing in each callback. The tracker stamps a ``HandBody`` with its
 landmarks' stamp and the kinematics model carries the stamp of the last hand body it absorbed
-(``KinematicBelief.stamp_ns``), so ``t_receive - model.stamp_ns`` is camera stamp -> model
+(``KinematicModel.stamp_ns``), so ``t_receive - model.stamp_ns`` is camera stamp -> model
 published **plus one extra router hop to this observer**; ``camera_to_landmarks_one_hop`` (the
 landmarks themselves, seen here) measures that hop under the same load.
 
@@ -89,7 +89,7 @@ def cpu_seconds(pid: int) -> float:
 def _settled(bus: Bus, keys: Keys, sent: int) -> bool:
     """True when the rig's tracker and kinematics have handled everything sent so far.
 
-    The tracker receives the landmarks and every model kinematics published (reset models too);
+    The tracker receives the landmarks and every model kinematics published;
     kinematics receives every body the tracker published.
     """
     try:

@@ -37,7 +37,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
-from services.common.bus import Bus, BusError, ZenohOptions
+from services.common.bus import Bus, BusError, ZenohOptions, wait_for_services
 from services.common.keys import Keys
 from services.common.processes import (
     REPO,
@@ -94,7 +94,6 @@ def live_replay(bus: Bus, keys: Keys, object_name: str, participant: int, seed: 
 
 
 def cmd_replay(args: argparse.Namespace) -> int:
-    from services.cli import wait_for_services
     from services.common.service import stop_on_signals
 
     stop = threading.Event()
@@ -341,7 +340,7 @@ class DemoRun:
 def run_demonstration(placement: Placement, workdir: Path, object_name: str = "slider",
                       robot: bool = True) -> DemoRun:
     """One demonstration (participant 3, seed 0) through ``placement``; the final model."""
-    from services.demo import demo_tangent_error_deg
+    from services.evaluation.pipeline import demo_tangent_error_deg
     from services.synthetic.generator import generate
 
     with ProcessGroup(workdir) as group:

@@ -6,7 +6,7 @@ import importlib
 import sys
 
 BENCHMARKS = ("protocol", "tracker", "kinematics", "detector", "robot", "load", "faults",
-              "multihost")
+              "multihost", "view")
 
 
 def run(name: str) -> None:

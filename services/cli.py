@@ -24,6 +24,7 @@ from services.common.bus import (
     ZenohOptions,
     add_zenoh_arguments,
     options_from_args,
+    wait_for_services,
 )
 from services.common.config import SECTIONS, ConfigError, section_from_args, to_toml
 from services.common.keys import Keys, check_rig
@@ -59,19 +60,6 @@ def open_bus(args: argparse.Namespace) -> Bus:
     return Bus(zenoh_options(args))
 
 
-def wait_for_services(bus: Bus, keys: Keys, services: list[str], timeout: float) -> None:
-    """Block until every named service's liveliness token is visible."""
-    deadline = time.monotonic() + timeout
-    wanted = {keys.alive(s) for s in services}
-    while True:
-        missing = wanted - set(bus.alive(keys.alive_all, timeout=0.5))
-        if not missing:
-            return
-        if time.monotonic() > deadline:
-            raise BusError(f"services not alive after {timeout:.0f} s: {sorted(missing)}")
-        time.sleep(0.05)
-
-
 # --- commands ---
 
 
@@ -95,8 +83,13 @@ def cmd_record(args: argparse.Namespace) -> int:
     stop_on_signals(stop)
     key_exprs = args.key or [keys.all]
     with McapRecorder(args.file) as rec, open_bus(args) as bus:
+        write = rec.write
+        if args.foxglove:
+            from services.view.export import foxglove_writer
+
+            write = foxglove_writer(rec)
         for k in key_exprs:
-            bus.subscribe(k, rec.write)
+            bus.subscribe(k, write)
         bus.declare_token(keys.alive("recorder"))
         print(f"recording {key_exprs} to {args.file}", flush=True)
         deadline = time.monotonic() + args.duration if args.duration else None
@@ -253,6 +246,8 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
                    help="key expression to record (repeatable; default handkse/{rig}/**)")
     p.add_argument("--duration", type=float, help="stop after this many seconds")
     p.add_argument("--count", type=int, help="stop after this many messages")
+    p.add_argument("--foxglove", action="store_true",
+                   help="also write channels in Foxglove's schemas (extra 'view'; see export)")
 
     p = add("replay", cmd_replay, "replay an MCAP recording or a synthetic demonstration")
     p.add_argument("file", nargs="?", type=Path)
@@ -291,6 +286,11 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     p.add_argument("--rate", type=float, default=1.0, help="replay speed factor (default 1)")
     p.add_argument("--no-robot", action="store_true",
                    help="stop after the estimate (skip the simulated articulation)")
+    p.add_argument("--view", action="store_true",
+                   help="show the run in Rerun's web viewer (handkse view; extra 'view')")
+    p.add_argument("--web-port", type=int, default=9090, help="with --view: web viewer port")
+    p.add_argument("--grpc-port", type=int, default=9876,
+                   help="with --view: port of the viewer's data server")
 
     p = add("eval", cmd_eval, "evaluate every method on the synthetic demonstrations (Table II)")
     from services.evaluation.cli import add_arguments as add_eval_arguments
@@ -331,8 +331,12 @@ MODULE_COMMANDS: list[tuple[str, str, str]] = [
     ("models", "services.detector.models", "prepare or show the ONNX hand models"),
     ("robot-bridge", "services.robot_bridge.service",
      "run the robot bridge (MuJoCo simulation or a real Panda)"),
-    ("robot-trials", "services.robot_bridge.trials",
+    ("robot-trials", "services.evaluation.robot_trials",
      "Table III in simulation: articulate key and window lock along each method's estimates"),
+    ("view", "services.view.service",
+     "live 3-D view of the bus or of a recording in Rerun (web, native or .rrd; extra 'view')"),
+    ("export", "services.view.export",
+     "copy an MCAP recording adding channels in Foxglove's schemas (extra 'view')"),
 ]
 
 

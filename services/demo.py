@@ -4,40 +4,30 @@ Starts a Zenoh router, the tracker and the kinematics service as separate proces
 loopback endpoint, replays a synthetic demonstration (default: the key, participant 3) in real
 time from this process, prints live progress (type, probabilities, tangent error against the
 ground truth), then queries the final model with ``get`` and prints it beside the truth.
+With ``view``, ``handkse view`` runs beside them as one more client (Rerun's web viewer on
+127.0.0.1; the URL is printed) and stays up, on a terminal, until Enter is pressed.
 """
 
 from __future__ import annotations
 
 import argparse
+import sys
 import tempfile
 import threading
 import time
-from collections.abc import Sequence
 from pathlib import Path
 
-import numpy as np
-
-from services.common.bus import Bus, BusError, ZenohOptions
+from services.common.bus import Bus, ZenohOptions, wait_for_services
 from services.common.keys import Keys
-from services.common.processes import ProcessGroup, free_tcp_endpoint
+from services.common.processes import ProcessGroup, client_args, free_tcp_endpoint
 from services.common.protocol import KinematicModel
 from services.common.recording import replay
-from services.evaluation.pipeline import joint_estimate
-from services.kinematics.metrics import JointEstimate, tangent_error
+from services.evaluation.metrics import JointEstimate
+from services.evaluation.pipeline import demo_tangent_error_deg, joint_estimate
 from services.synthetic.generator import Demonstration, generate
 from services.synthetic.replay import demonstration_recording
 
 SERVICES = ("tracker", "kinematics")
-
-
-def truth_of(demo: Demonstration) -> JointEstimate:
-    joint = demo.truth.joint
-    return JointEstimate(type=joint.type, axis=np.array(joint.axis), point=np.array(joint.point))
-
-
-def demo_tangent_error_deg(model: KinematicModel, demo: Demonstration) -> float:
-    positions = demo.truth.grasp_points
-    return float(np.degrees(tangent_error(truth_of(demo), joint_estimate(model), positions)))
 
 
 def _progress_line(model: KinematicModel, demo: Demonstration, t: float) -> str:
@@ -50,7 +40,7 @@ def _progress_line(model: KinematicModel, demo: Demonstration, t: float) -> str:
 
 def print_comparison(model: KinematicModel, demo: Demonstration) -> float:
     """Print the final model beside the ground truth; returns the tangent error in degrees."""
-    truth = truth_of(demo)
+    truth = JointEstimate.from_joint(demo.truth.joint)
     est = joint_estimate(model)
     err = demo_tangent_error_deg(model, demo)
     fmt = lambda v: "[" + ", ".join(f"{x:+.3f}" for x in v) + "]"  # noqa: E731
@@ -67,11 +57,14 @@ def print_comparison(model: KinematicModel, demo: Demonstration) -> float:
 
 
 def run_demo(object_name: str = "key", participant: int = 3, seed: int = 0, rate: float = 1.0,
-             rig: str = "demo", workdir: Path | None = None, robot: bool = True) -> float:
+             rig: str = "demo", workdir: Path | None = None, robot: bool = True,
+             view: bool = False, view_ports: tuple[int, int] = (9090, 9876)) -> float:
     """Run the whole pipeline on one synthetic demonstration; returns the tangent error (deg).
 
     With ``robot``, the simulated Panda then grasps the true object and articulates it along the
-    estimated model (MuJoCo), and the result with peak and mean force is printed.
+    estimated model (MuJoCo), and the result with peak and mean force is printed. With ``view``,
+    ``handkse view`` shows the run in Rerun's web viewer (its URL is printed); ``view_ports``
+    are the viewer's web and data ports on 127.0.0.1.
     """
     demo = generate(object_name, participant, seed)
     messages = demonstration_recording(demo, rig)
@@ -84,8 +77,14 @@ def run_demo(object_name: str = "key", participant: int = 3, seed: int = 0, rate
     options = ZenohOptions(mode="client", connect=(endpoint,), multicast_scouting=False)
     with ProcessGroup(workdir) as group:
         group.start_pipeline(endpoint, rig, SERVICES)
+        if view:
+            group.start("view", "view", *client_args(endpoint, rig), "--web-port",
+                        str(view_ports[0]), "--grpc-port", str(view_ports[1]))
+            group.wait_log("view", "web viewer at", 60.0)
+            print(next(line for line in group.log("view").splitlines()
+                       if line.startswith("web viewer at")), flush=True)
         with Bus(options) as bus:
-            _wait_alive(bus, keys, SERVICES, 60.0)
+            wait_for_services(bus, keys, (*SERVICES, "view") if view else SERVICES, 60.0)
             bus.get(keys.reset("kinematics"))  # a fresh demonstration even with an old state file
             bus.get(keys.reset("tracker"))
             latest: list[KinematicModel] = []
@@ -102,7 +101,9 @@ def run_demo(object_name: str = "key", participant: int = 3, seed: int = 0, rate
                     print(_progress_line(latest[-1], demo, time.monotonic() - t0), flush=True)
             _wait_settled(latest)
             final = KinematicModel.from_msgpack(bus.get(keys.kinematics_model)[0][1])
-    error = print_comparison(final, demo)
+        error = print_comparison(final, demo)
+        if view and sys.stdin.isatty():
+            input("\nthe viewer stays open; press Enter to stop it ")
     if robot:
         from services.robot_bridge.simulation import articulate_demonstration, format_result
 
@@ -110,15 +111,6 @@ def run_demo(object_name: str = "key", participant: int = 3, seed: int = 0, rate
         sim = articulate_demonstration(final, demo)
         print(format_result(sim.result, final.type))
     return error
-
-
-def _wait_alive(bus: Bus, keys: Keys, services: Sequence[str], timeout: float) -> None:
-    deadline = time.monotonic() + timeout
-    wanted = {keys.alive(s) for s in services}
-    while wanted - set(bus.alive(keys.alive_all, timeout=0.5)):
-        if time.monotonic() > deadline:
-            raise BusError(f"services did not start within {timeout:.0f} s: {sorted(wanted)}")
-        time.sleep(0.1)
 
 
 def _wait_settled(latest: list[KinematicModel], quiet_s: float = 1.0, timeout: float = 20.0
@@ -137,5 +129,6 @@ def _wait_settled(latest: list[KinematicModel], quiet_s: float = 1.0, timeout: f
 
 def main(args: argparse.Namespace) -> int:
     run_demo(args.object, args.participant, args.seed, args.rate, args.rig,
-             robot=not args.no_robot)
+             robot=not args.no_robot, view=args.view,
+             view_ports=(args.web_port, args.grpc_port))
     return 0

@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import subprocess
+import threading
 import time
+import uuid
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
@@ -11,6 +13,7 @@ import pytest
 
 from services.common.bus import Bus, ZenohOptions
 from services.common.processes import REPO, ProcessGroup, child_env, client_args, handkse_cmd
+from services.common.service import BusLike
 
 
 class Processes(ProcessGroup):
@@ -43,6 +46,39 @@ def wait_until(predicate: Callable[[], bool], timeout: float = 10.0, period: flo
         if time.monotonic() > deadline:
             pytest.fail(f"timed out after {timeout} s waiting for {what}")
         time.sleep(period)
+
+
+def wait_routed(subscriber: BusLike, publisher: BusLike | None = None,
+                timeout: float = 10.0) -> None:
+    """Wait until what ``publisher`` puts reaches the subscriptions ``subscriber`` has declared.
+
+    Zenoh propagates declarations asynchronously, but in order over each session's link: once a
+    probe subscription declared now receives a probe that ``publisher`` puts, the subscriptions
+    declared before it are routed as well. Without ``publisher`` a new session with
+    ``subscriber``'s options sends the probe: then the router knows the subscriptions, and a
+    service process that connects afterwards learns them when it opens its session.
+    """
+    key = f"handkse-test/probe/{uuid.uuid4().hex}"
+    arrived = threading.Event()
+    probe = subscriber.subscribe(key, lambda _k, _p: arrived.set())
+    try:
+        if publisher is None:
+            assert isinstance(subscriber, Bus), "a fake bus needs an explicit publisher"
+            with Bus(subscriber.options) as other:
+                _probe_until(other, key, arrived, timeout)
+        else:
+            _probe_until(publisher, key, arrived, timeout)
+    finally:
+        probe.undeclare()
+
+
+def _probe_until(publisher: BusLike, key: str, arrived: threading.Event, timeout: float) -> None:
+    deadline = time.monotonic() + timeout
+    publisher.put(key, b"")
+    while not arrived.wait(0.02):
+        if time.monotonic() > deadline:
+            pytest.fail(f"timed out after {timeout} s waiting for a subscription to be routed")
+        publisher.put(key, b"")
 
 
 @pytest.fixture

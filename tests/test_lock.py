@@ -46,16 +46,14 @@ def read_lock(path: Path) -> list[Pin]:
     """The pins of a ``uv pip compile --generate-hashes`` file (continuation lines joined)."""
     text = re.sub(r"\\\n\s*", " ", path.read_text())
     pins = []
-    for line in text.splitlines():
-        line = line.split("#", 1)[0].strip()
+    for raw in text.splitlines():
+        line = raw.split("#", 1)[0].strip()
         if not line or line.startswith("-"):
             continue
-        spec, _, marker = line.partition(";")
-        marker, hashes = marker, spec.count("--hash=")
-        if "--hash=" in marker:
-            hashes = marker.count("--hash=")
-            marker = marker.split("--hash=", 1)[0]
-        name, _, version = spec.split("--hash=", 1)[0].strip().partition("==")
+        hashes = line.count("--hash=")
+        requirement = line.split("--hash=", 1)[0]
+        spec, _, marker = requirement.partition(";")
+        name, _, version = spec.strip().partition("==")
         pins.append(Pin(canonicalize_name(name.split("[")[0]), version.strip(),
                         Marker(marker.strip()) if marker.strip() else None, hashes))
     return pins

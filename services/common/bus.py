@@ -25,6 +25,8 @@ from typing import Any
 
 import zenoh
 
+from services.common.keys import Keys
+
 log = logging.getLogger(__name__)
 
 MSGPACK = "application/msgpack"
@@ -450,13 +452,18 @@ def _parameters(params: Any) -> dict[str, str]:
         return out
 
 
-def run_router(options: ZenohOptions, stop: threading.Event) -> None:
-    """Run a Zenoh router in this process until ``stop`` is set (tests, small setups)."""
-    with Bus(replace(options, mode="router")):
-        while not stop.wait(0.2):  # a timeout, so that a signal handler setting ``stop`` wakes it
-            pass
+def wait_for_services(bus: Bus, keys: Keys, services: Sequence[str], timeout: float) -> None:
+    """Block until every named service's liveliness token is visible on ``bus``.
 
-
-def split_endpoints(values: Sequence[str] | None) -> tuple[str, ...]:
-    """Flatten comma-separated endpoint lists."""
-    return tuple(e for v in values or () for e in v.split(",") if e)
+    ``services``: service names as in :meth:`Keys.alive`; ``timeout`` in seconds. Raises
+    :class:`BusError` naming the services still missing when the timeout passes.
+    """
+    deadline = time.monotonic() + timeout
+    wanted = {keys.alive(s) for s in services}
+    while True:
+        missing = wanted - set(bus.alive(keys.alive_all, timeout=0.5))
+        if not missing:
+            return
+        if time.monotonic() > deadline:
+            raise BusError(f"services not alive after {timeout:.0f} s: {sorted(missing)}")
+        time.sleep(0.05)

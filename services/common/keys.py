@@ -79,7 +79,3 @@ def remap_rig(key: str, rig: str) -> str:
     if len(parts) == 3 and parts[0] == PREFIX:
         return f"{PREFIX}/{check_rig(rig)}/{parts[2]}"
     return key
-
-
-# Data streams that a recording captures by default (control queryables are not recorded).
-DATA_STREAMS = ("camera/rgbd", "hand/landmarks", "hand/body", "kinematics/model", "robot/state")

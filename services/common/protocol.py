@@ -9,20 +9,24 @@ validates everything and raises one exception type, :class:`ProtocolError`, whos
 the offending field (``"HandBody.landmarks.status: ..."``). Unknown extra keys are ignored.
 Equality of two messages is equality of their wire bytes.
 
-This is the only module that imports msgpack.
+This is the only module that imports msgpack. It stays one module past the house limit of about
+450 lines on purpose: the messages and the field reader that validates them are one contract,
+read side by side with docs/protocol.md.
 """
 
 from __future__ import annotations
 
 import math
 import re
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, TypeVar
 
 import msgpack
 import numpy as np
 from numpy.typing import NDArray
+
+from services.common.se3 import check_pose
 
 PROTOCOL_MAJOR = 1
 FRAME_IDS = ("camera", "world")
@@ -33,7 +37,6 @@ ROBOT_MODES = ("idle", "articulating", "fault")
 NUM_LANDMARKS = 21
 _UNIT_TOLERANCE = 1e-6
 _PROBABILITY_TOLERANCE = 1e-6
-_ROTATION_TOLERANCE = 1e-6
 
 
 class ProtocolError(ValueError):
@@ -305,13 +308,9 @@ def _check_unit(v: NDArray[Any], path: str) -> None:
         raise ProtocolError(f"{path}: axis must be unit length, has norm {n:.9g}")
 
 
-def _check_pose(T: NDArray[Any], path: str) -> None:
-    R = T[:3, :3]
-    if (np.abs(R.T @ R - np.eye(3)).max() > _ROTATION_TOLERANCE
-            or abs(np.linalg.det(R) - 1.0) > _ROTATION_TOLERANCE
-            or np.abs(T[3] - (0.0, 0.0, 0.0, 1.0)).max() > 0.0):
-        raise ProtocolError(f"{path}: not a rigid transform (rotation not orthonormal or bottom "
-                            "row not [0, 0, 0, 1])")
+def _require_pose(T: NDArray[Any], path: str) -> None:
+    if (problem := check_pose(T)) is not None:
+        raise ProtocolError(f"{path}: not a rigid transform: {problem}")
 
 
 def _check_covariance(P: NDArray[Any], path: str) -> None:
@@ -488,7 +487,7 @@ class RgbdFrame(Message):
         de, dw, dh, dd = _parse_image(df, DEPTH_ENCODINGS, "u16", 2)
         T = f.array("T_world_camera", "<f8", (4, 4), optional=True)
         if T is not None:
-            _check_pose(T, f"{f.path}.T_world_camera")
+            _require_pose(T, f"{f.path}.T_world_camera")
         return cls(**envelope, color=ColorImage(encoding=ce, width=cw, height=ch, data=cd),
                    depth=DepthImage(encoding=de, width=dw, height=dh,
                                     scale_m=df.float("scale_m", 1e-9), data=dd),
@@ -555,7 +554,7 @@ class HandLandmarks(Message):
             raise ProtocolError(f"{f.path}.hands: expected a list of at most 2 hands")
         T = f.array("T_world_camera", "<f8", (4, 4), optional=True)
         if T is not None:
-            _check_pose(T, f"{f.path}.T_world_camera")
+            _require_pose(T, f"{f.path}.T_world_camera")
         return cls(**envelope,
                    hands=tuple(Hand.parse(_Fields(h, f"{f.path}.hands[{i}]"))
                                for i, h in enumerate(raw)), T_world_camera=T)
@@ -598,7 +597,7 @@ class HandBody(Message):
     @classmethod
     def _parse(cls, f: _Fields, envelope: dict[str, Any]) -> HandBody:
         pose = f.req_array("pose", "<f8", (4, 4))
-        _check_pose(pose, f"{f.path}.pose")
+        _require_pose(pose, f"{f.path}.pose")
         cov = f.req_array("covariance", "<f8", (12, 12))
         _check_covariance(cov, f"{f.path}.covariance")
         lf = f.req_map("landmarks")
@@ -619,7 +618,12 @@ class HandBody(Message):
 
 @dataclass(frozen=True, kw_only=True, eq=False)
 class PrismaticParams:
-    """Prismatic joint: unit ``axis``, joint value ``q`` (m), ``dq`` (m/s), 4x4 covariance."""
+    """Prismatic joint in the model's frame.
+
+    ``axis`` (3,) unit direction; ``q`` [m] joint value (hand displacement along ``axis`` from the
+    reference pose); ``dq`` [m/s]; ``covariance`` (4x4) of ``(b1, b2, q, dq)``, where ``(b1, b2)``
+    [rad] are axis coordinates in ``tangent_basis(axis)`` (``services.kinematics.filters``).
+    """
 
     axis: NDArray[np.float64]
     q: float
@@ -629,7 +633,13 @@ class PrismaticParams:
 
 @dataclass(frozen=True, kw_only=True, eq=False)
 class RevoluteParams:
-    """Revolute joint: unit ``axis``, ``point`` closest to the frame origin, ``q`` (rad), ``dq``."""
+    """Revolute joint in the model's frame.
+
+    ``axis`` (3,) unit direction; ``point`` (3,) [m] the point of the axis closest to the frame
+    origin; ``q`` [rad] unbounded joint value (right-handed rotation about ``axis`` from the
+    reference pose); ``dq`` [rad/s]; ``covariance`` (7x7) of ``(b1, b2, px, py, pz, q, dq)``, the
+    axis coordinates in ``tangent_basis(axis)``.
+    """
 
     axis: NDArray[np.float64]
     point: NDArray[np.float64]
@@ -640,7 +650,12 @@ class RevoluteParams:
 
 @dataclass(frozen=True, kw_only=True, eq=False)
 class KinematicModel(Message):
-    """The kinematics service's belief (``handkse/{rig}/kinematics/model``)."""
+    """The kinematics service's belief (``handkse/{rig}/kinematics/model``), the one kinematic
+    model type of handkse: :class:`services.kinematics.estimator.KinematicEstimator` returns it
+    too. ``stamp_ns`` is that of the last hand body absorbed; ``updates`` 0 is the empty model,
+    before any (docs/protocol.md). The hand pose at joint value q is
+    ``Exp(q * screw) @ reference_pose``, screw ``(axis, 0)`` or ``(point x axis, axis)``
+    (:mod:`services.kinematics.prediction`)."""
 
     SCHEMA: ClassVar[str] = "handkse.KinematicModel/1"
     type: str
@@ -687,7 +702,7 @@ class KinematicModel(Message):
             revolute = RevoluteParams(axis=axis, point=m.req_array("point", "<f8", (3,)),
                                       q=m.float("q"), dq=m.float("dq"), covariance=cov)
         reference = f.req_array("reference_pose", "<f8", (4, 4))
-        _check_pose(reference, f"{f.path}.reference_pose")
+        _require_pose(reference, f"{f.path}.reference_pose")
         model_type = f.str("type", MODEL_TYPES)
         if model_type == "prismatic" and prismatic is None:
             raise ProtocolError(f"{f.path}.prismatic: type is prismatic but parameters are nil")
@@ -720,7 +735,7 @@ class RobotState(Message):
     @classmethod
     def _parse(cls, f: _Fields, envelope: dict[str, Any]) -> RobotState:
         T = f.req_array("T_base_ee", "<f8", (4, 4))
-        _check_pose(T, f"{f.path}.T_base_ee")
+        _require_pose(T, f"{f.path}.T_base_ee")
         return cls(**envelope, q=f.req_array("q", "<f8", (7,)),
                    dq=f.req_array("dq", "<f8", (7,)), T_base_ee=T,
                    wrench=f.req_array("wrench", "<f8", (6,)),
@@ -794,6 +809,8 @@ class ArticulateResult(Message):
 
 @dataclass(frozen=True, kw_only=True, eq=False)
 class Ack(Message):
+    """Reply to a control call (``reset``); its envelope is placeholders (docs/protocol.md)."""
+
     SCHEMA: ClassVar[str] = "handkse.Ack/1"
     ok: bool
     message: str = ""
@@ -809,7 +826,8 @@ class Ack(Message):
 @dataclass(frozen=True, kw_only=True, eq=False)
 class ServiceStats(Message):
     """Counters of one service; ``latency_ms`` maps a stage to ``{"p50": ms, "p99": ms}``;
-    ``skipped`` (optional) counts valid inputs that produced no output, by reason."""
+    ``skipped`` (optional) counts valid inputs that produced no output, by reason. The envelope
+    is placeholders (seq and stamp_ns 0, frame_id "camera"; docs/protocol.md)."""
 
     SCHEMA: ClassVar[str] = "handkse.ServiceStats/1"
     service: str
@@ -852,8 +870,3 @@ class ServiceStats(Message):
 MESSAGE_TYPES: tuple[type[Message], ...] = (RgbdFrame, HandLandmarks, HandBody, KinematicModel,
                                             RobotState, ArticulateRequest, ArticulateResult,
                                             Ack, ServiceStats)
-
-
-def decoder(cls: type[M]) -> Callable[[bytes], M]:
-    """A ``bytes -> message`` function for one message type (for subscriptions)."""
-    return cls.from_msgpack

@@ -3,8 +3,10 @@
 File layout: one MCAP channel per key expression, message encoding ``msgpack``, one schema per
 message type named by the payload's ``schema`` string (``handkse.HandLandmarks/1``; schema
 encoding ``handkse``, data pointing at the protocol page). Log time = receive time (ns, wall
-clock), publish time = the message's ``stamp_ns``. Any MCAP tool (Foxglove, ``mcap`` CLI)
-opens these files.
+clock), publish time = the message's ``stamp_ns``. MCAP tools list these channels, but none can
+decode msgpack with a ``handkse`` schema: ``handkse export`` (or ``handkse record --foxglove``)
+adds channels in Foxglove's own protobuf schemas beside them (:meth:`McapRecorder.write_encoded`,
+:mod:`services.view.foxglove_scene`).
 
 Replay publishes every message on its key (optionally remapped to another rig) at the
 original pace, at ``rate`` times that pace, or as fast as possible (``rate=0``).
@@ -32,6 +34,17 @@ _SCHEMA_DATA = b"handkse wire protocol v1: msgpack map, see docs/protocol.md"
 
 
 @dataclass(frozen=True)
+class EncodedSchema:
+    """A channel's schema for :meth:`McapRecorder.write_encoded`: ``name``, schema ``encoding``
+    (``protobuf``: ``data`` is a serialized FileDescriptorSet) and ``message_encoding``."""
+
+    name: str
+    encoding: str
+    data: bytes
+    message_encoding: str
+
+
+@dataclass(frozen=True)
 class RecordedMessage:
     key: str
     payload: bytes
@@ -52,7 +65,8 @@ class McapRecorder:
         self._channels: dict[str, int] = {}
         self._sequence: dict[str, int] = {}
         self._lock = threading.Lock()
-        self.count = 0
+        self.count = 0  # handkse payloads (``write``)
+        self.encoded_count = 0  # other messages (``write_encoded``)
         self._closed = False
 
     def __enter__(self) -> McapRecorder:
@@ -86,6 +100,28 @@ class McapRecorder:
                                      data=payload, publish_time=stamp, sequence=seq)
             self.count += 1
 
+    def write_encoded(self, topic: str, schema: EncodedSchema, data: bytes, *, log_time_ns: int,
+                      publish_time_ns: int) -> None:
+        """Record one message that is not a handkse payload (e.g. a Foxglove protobuf message) on
+        its own channel ``topic``, with its own schema; times in ns, clamped to MCAP's range."""
+        publish = publish_time_ns if 0 <= publish_time_ns < 2**64 else log_time_ns
+        with self._lock:
+            if self._closed:
+                return
+            schema_key = f"{schema.encoding}:{schema.name}"
+            if schema_key not in self._schemas:
+                self._schemas[schema_key] = self._writer.register_schema(
+                    name=schema.name, encoding=schema.encoding, data=schema.data)
+            if topic not in self._channels:
+                self._channels[topic] = self._writer.register_channel(
+                    topic=topic, message_encoding=schema.message_encoding,
+                    schema_id=self._schemas[schema_key])
+            seq = self._sequence.get(topic, 0)
+            self._sequence[topic] = seq + 1
+            self._writer.add_message(channel_id=self._channels[topic], log_time=log_time_ns,
+                                     data=data, publish_time=publish, sequence=seq)
+            self.encoded_count += 1
+
     def close(self) -> None:
         with self._lock:
             if self._closed:
@@ -96,10 +132,13 @@ class McapRecorder:
 
 
 def read_recording(path: str | Path) -> Iterator[RecordedMessage]:
-    """Messages of an MCAP file in log-time order."""
+    """The handkse messages (msgpack channels) of an MCAP file in log-time order; channels in
+    other encodings (the Foxglove channels of an exported file) are skipped."""
     with open(path, "rb") as f:
         reader = make_reader(f)
         for schema, channel, message in reader.iter_messages(log_time_order=True):
+            if channel.message_encoding != MESSAGE_ENCODING:
+                continue
             yield RecordedMessage(key=channel.topic, payload=message.data,
                                   log_time_ns=message.log_time,
                                   publish_time_ns=message.publish_time,

@@ -11,7 +11,11 @@ Conventions (the same everywhere in handkse):
   (atan2 of the half angle), so it is stable near 0 and near pi, where ``1/sin`` forms are not.
 
 Lengths are metres, angles radians. Functions take and return numpy arrays and do not check
-their inputs; callers at module boundaries validate.
+their inputs; callers at module boundaries validate, with :func:`check_pose` for poses (the one
+pose check of handkse: the protocol decoder and the libraries' own input checks use it).
+:func:`skew_batch` and :func:`so3_exp` also take stacks ``(..., 3)`` of vectors. This module is
+the one home of ``[v]x`` and Rodrigues' formula; rigid fits of point sets are in
+:mod:`services.common.kabsch`.
 
 The ``*_fast`` functions compute the same maps for one input on Python floats, with the same
 small-angle branches: a few microseconds where a dozen tiny numpy operations take tens, for
@@ -28,6 +32,10 @@ from numpy.typing import NDArray
 
 Array = NDArray[np.float64]
 
+# Tolerance of check_pose on a rotation's orthonormality and determinant; the wire contract's
+# (docs/protocol.md, validation rules).
+POSE_TOLERANCE = 1e-6
+
 # Below this rotation angle (rad) the closed forms lose precision and Taylor series are used.
 _SMALL_ANGLE = 1e-4
 
@@ -38,8 +46,26 @@ def skew(v: Array) -> Array:
     return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
 
 
+# [v]x flattened row-major is ``v @ _SKEW_MAP``: rows v0, v1, v2; columns the nine entries.
+_SKEW_MAP = np.zeros((3, 9))
+_SKEW_MAP[2, 1] = _SKEW_MAP[1, 6] = _SKEW_MAP[0, 5] = -1.0
+_SKEW_MAP[1, 2] = _SKEW_MAP[2, 3] = _SKEW_MAP[0, 7] = 1.0
+
+
+def skew_batch(v: Array) -> Array:
+    """``[v]x`` for a stack of 3-vectors: (..., 3) -> (..., 3, 3) (as :func:`skew`)."""
+    out: Array = (v @ _SKEW_MAP).reshape(*v.shape[:-1], 3, 3)
+    return out
+
+
 def so3_exp(w: Array) -> Array:
-    """Rotation matrix of the rotation vector ``w`` (Rodrigues' formula)."""
+    """Rotation matrix of the rotation vector ``w`` (Rodrigues' formula).
+
+    ``w`` (3,) gives (3, 3); a stack (..., 3) gives (..., 3, 3), each as for a single vector
+    (to round-off: the stack is evaluated with array operations).
+    """
+    if w.ndim > 1:
+        return _so3_exp_stack(w)
     theta_sq = float(w @ w)
     W = skew(w)
     if theta_sq < _SMALL_ANGLE**2:
@@ -50,6 +76,19 @@ def so3_exp(w: Array) -> Array:
         a = math.sin(theta) / theta
         b = (1.0 - math.cos(theta)) / theta_sq
     return np.eye(3) + a * W + b * (W @ W)
+
+
+def _so3_exp_stack(w: Array) -> Array:
+    """:func:`so3_exp` of a stack (..., 3) of rotation vectors, same coefficients and branch."""
+    theta_sq = np.einsum("...i,...i->...", w, w)
+    theta = np.sqrt(theta_sq)
+    small = theta_sq < _SMALL_ANGLE**2
+    safe = np.where(small, 1.0, theta)  # no 0/0 in the branch np.where discards
+    a = np.where(small, 1.0 - theta_sq / 6.0, np.sin(safe) / safe)
+    b = np.where(small, 0.5 - theta_sq / 24.0, (1.0 - np.cos(safe)) / (safe * safe))
+    W = skew_batch(w)
+    out: Array = np.eye(3) + a[..., None, None] * W + b[..., None, None] * (W @ W)
+    return out
 
 
 def quat_wxyz_from_matrix(R: Array) -> Array:
@@ -218,6 +257,35 @@ def pose_from_rotation_translation(R: Array, t: Array) -> Array:
     T[:3, :3] = R
     T[:3, 3] = t
     return T
+
+
+def check_pose(T: object, tol: float = POSE_TOLERANCE) -> str | None:
+    """What is wrong with ``T`` as a pose ``T_a_b``, or None when it is a rigid transform.
+
+    ``T``: array-like, shape (4, 4). A rigid transform is finite, its rotation block ``R`` has
+    ``max |R^T R - I| <= tol`` and ``|det R - 1| <= tol`` (no reflection, no scale), and its
+    bottom row is exactly ``[0, 0, 0, 1]``. Never raises: the answer is a short description of
+    the first problem found, for the caller's error message (callers decide whether to raise,
+    reject or count).
+    """
+    try:
+        M = np.asarray(T, dtype=float)
+    except (TypeError, ValueError):
+        return "not a numeric array"
+    if M.shape != (4, 4):
+        return f"shape must be (4, 4), got {M.shape}"
+    if not np.isfinite(M).all():
+        return "contains NaN or infinity"
+    if (M[3] != (0.0, 0.0, 0.0, 1.0)).any():
+        return f"bottom row must be [0, 0, 0, 1], got {M[3].tolist()}"
+    R = M[:3, :3]
+    err = float(np.abs(R.T @ R - np.eye(3)).max())
+    if err > tol:
+        return f"rotation is not orthonormal (max |R^T R - I| = {err:.3g} > {tol:g})"
+    det = float(np.linalg.det(R))
+    if abs(det - 1.0) > tol:
+        return f"rotation has determinant {det:.9g}, not 1"
+    return None
 
 
 def rotation_angle(R: Array) -> float:

@@ -247,19 +247,30 @@ class Service:
         while not stop.is_set():
             event = self._inbox.take(idle_period_s)
             if event is not None:
-                fn, args = event
-                try:
-                    fn(*args)
-                except Exception as exc:  # a bug for one input must not end the service
-                    # Counted and logged like any rejection (once per second, with the count);
-                    # the traceback only at DEBUG, so a flood of one bad input cannot fill a disk.
-                    self.reject("internal_error", repr(exc))
-                    log.debug("%s: handler failed", self.name, exc_info=True)
+                self._handle(event)
             if time.monotonic() >= next_idle:
                 next_idle = time.monotonic() + idle_period_s
                 self._log_drops()
                 if idle is not None:
                     idle()
+
+    def handle_pending(self) -> int:
+        """Handle every event queued now, in this thread, then return how many (tests, tools)."""
+        handled = 0
+        while (event := self._inbox.take(0.0)) is not None:
+            self._handle(event)
+            handled += 1
+        return handled
+
+    def _handle(self, event: tuple[Callable[..., None], tuple[Any, ...]]) -> None:
+        fn, args = event
+        try:
+            fn(*args)
+        except Exception as exc:  # a bug for one input must not end the service
+            # Counted and logged like any rejection (once per second, with the count); the
+            # traceback only at DEBUG, so a flood of one bad input cannot fill a disk.
+            self.reject("internal_error", repr(exc))
+            log.debug("%s: handler failed", self.name, exc_info=True)
 
     def _log_drops(self) -> None:
         dropped = self.inbox_dropped()

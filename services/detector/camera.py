@@ -111,7 +111,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def main(args: argparse.Namespace) -> int:
     """``handkse camera``: 0 when the source ended or was stopped, 2 when it cannot open."""
-    from services.common.bus import Bus, options_from_args
+    from services.common.bus import Bus, options_from_args, wait_for_services
     from services.common.config import section_from_args
 
     keys = Keys(args.rig)
@@ -129,8 +129,6 @@ def main(args: argparse.Namespace) -> int:
     try:
         with Bus(options_from_args(args, section_from_args(args, "zenoh"))) as bus:
             if args.wait_for:
-                from services.cli import wait_for_services
-
                 wait_for_services(bus, keys, args.wait_for, args.wait_timeout)
             if args.save:
                 first = getattr(source, "intrinsics", None)

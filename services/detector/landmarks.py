@@ -22,8 +22,9 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from services.common.protocol import NUM_LANDMARKS
+
 LANDMARK_INPUT = 224
-NUM_LANDMARKS = 21
 WRIST, INDEX_MCP, MIDDLE_MCP, RING_MCP = 0, 5, 9, 13
 # MediaPipe hand_landmark_landmarks_to_roi: the landmarks that bound the tracking ROI
 # (wrist, thumb CMC/MCP/IP, and the MCP and PIP of each finger).

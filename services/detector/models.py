@@ -43,6 +43,8 @@ from typing import Any
 
 import numpy as np
 
+from services.common.progress import Progress
+
 log = logging.getLogger(__name__)
 
 MANIFEST = "manifest.json"
@@ -397,11 +399,14 @@ def _version(package: str) -> str | None:
 
 def prepare(models_dir: str | Path | None = None, *, wheel: str | Path | None = None,
             check: bool | None = None, force: bool = False,
-            report: Callable[[str], None] = log.info) -> dict[str, Any]:
+            report: Callable[[str], None] = log.info,
+            progress: Progress | None = None) -> dict[str, Any]:
     """Prepare (or verify) the model cache and return its manifest.
 
     ``check``: compare each conversion with its original under LiteRT; None = when
     ``ai-edge-litert`` is installed. ``force`` re-extracts and re-converts everything.
+    ``progress``: shows the steps (fetch, one conversion and one check per model) with how many
+    are left; without it each step is a ``report`` line.
     """
     root = models_dir_or_default(models_dir)
     with _locked(root):
@@ -412,20 +417,26 @@ def prepare(models_dir: str | Path | None = None, *, wheel: str | Path | None = 
                 report(f"hand models up to date in {root}")
                 return manifest
         t0 = time.monotonic()
-        if force or wheel is not None or not _originals_present(root):
+        do_check = _litert_available() if check is None else check
+        if do_check and not _litert_available():
+            raise PrepareError("the numeric check needs ai-edge-litert (pip install ai-edge-litert)")
+        fetch = force or wheel is not None or not _originals_present(root)
+        if progress is not None:
+            progress.total = int(fetch) + len(MODELS) * (2 if do_check else 1)
+        step = report if progress is None else progress.step
+        if fetch:
+            if progress is not None:
+                progress.step(f"fetching the originals ({WHEEL.requirement})")
             source = _extract_originals(root, Path(wheel) if wheel else None, report)
         else:
             source = load_manifest(root)["source"] if (root / MANIFEST).is_file() else {
                 "wheel": WHEEL.filename, "requirement": WHEEL.requirement,
                 "sha256": WHEEL.sha256, "url": "https://pypi.org/project/mediapipe/0.10.14/"}
-        do_check = _litert_available() if check is None else check
-        if do_check and not _litert_available():
-            raise PrepareError("the numeric check needs ai-edge-litert (pip install ai-edge-litert)")
         models: dict[str, Any] = {}
         for spec in MODELS.values():
             src = root / "tflite" / f"{spec.name}.tflite"
             dst = root / f"{spec.name}.onnx"
-            report(f"converting {spec.name}")
+            step(f"converting {spec.name}")
             try:
                 info = convert(src, dst)
             except Exception as exc:
@@ -435,6 +446,8 @@ def prepare(models_dir: str | Path | None = None, *, wheel: str | Path | None = 
                 "source_member": spec.member, "source_sha256": spec.sha256,
                 "input_size": spec.input_size, **info, "check": None}
             if do_check:
+                if progress is not None:
+                    progress.step(f"checking {spec.name} against LiteRT")
                 diffs = compare_with_tflite(src, dst)
                 worst = max(diffs.values())
                 if worst >= MAX_ABS_DIFF:
@@ -460,7 +473,11 @@ def prepare(models_dir: str | Path | None = None, *, wheel: str | Path | None = 
         tmp = root / (MANIFEST + ".part")
         tmp.write_text(json.dumps(manifest, indent=2) + "\n")
         os.replace(tmp, root / MANIFEST)
-        report(f"hand models ready in {root} ({manifest['prepare_seconds']} s)")
+        ready = f"hand models ready in {root} ({manifest['prepare_seconds']} s)"
+        if progress is not None:
+            progress.done(ready)
+        else:
+            report(ready)
         return manifest
 
 
@@ -505,8 +522,9 @@ def main(args: argparse.Namespace) -> int:
         if args.action == "show":
             print(json.dumps(load_manifest(models_dir), indent=2))
             return 0
+        progress = Progress(total=1)
         manifest = prepare(models_dir, wheel=args.wheel, check=args.check, force=args.force,
-                           report=lambda text: print(text, flush=True))
+                           report=progress.note, progress=progress)
     except (ModelsMissing, PrepareError) as exc:
         print(f"handkse models {args.action}: {exc}", file=sys.stderr)
         return 2

@@ -10,13 +10,13 @@ from __future__ import annotations
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
-from typing import Any
 
 import numpy as np
 
+from services.common.protocol import KinematicModel
+from services.evaluation.metrics import JointEstimate, tangent_error
 from services.kinematics.config import KinematicsConfig
-from services.kinematics.estimator import KinematicBelief, KinematicEstimator
-from services.kinematics.metrics import JointEstimate
+from services.kinematics.estimator import KinematicEstimator
 from services.kinematics.prediction import predict_hand_pose
 from services.synthetic.generator import Demonstration
 from services.tracker.config import TrackerConfig
@@ -25,16 +25,16 @@ from services.tracker.tracker import HandObservation, HandTracker
 
 @dataclass(frozen=True)
 class PipelineResult:
-    """Final belief, the belief after each frame (None before the first), and step timings."""
+    """Final model, the model after each frame (None before the first), and step timings."""
 
-    final: KinematicBelief
-    history: Sequence[KinematicBelief | None]
+    final: KinematicModel
+    history: Sequence[KinematicModel | None]
     stamps_ns: np.ndarray
     step_seconds: np.ndarray
 
 
-def joint_estimate(model: Any) -> JointEstimate:
-    """The most probable joint of a ``KinematicBelief`` or wire ``KinematicModel`` (same fields).
+def joint_estimate(model: KinematicModel) -> JointEstimate:
+    """The most probable joint of a model.
 
     Rigid, disconnected and unknown carry no axis; the prismatic line passes through the hand
     at q = 0 (``reference_pose``).
@@ -53,12 +53,12 @@ def run_pipeline(demo: Demonstration, tracker_config: TrackerConfig | None = Non
     """Feed every frame of ``demo`` through the tracker and the kinematics estimator."""
     tracker = HandTracker(tracker_config or TrackerConfig())
     estimator = KinematicEstimator(kinematics_config or KinematicsConfig())
-    belief: KinematicBelief | None = None
-    history: list[KinematicBelief | None] = []
+    model: KinematicModel | None = None
+    history: list[KinematicModel | None] = []
     seconds = np.zeros(len(demo.stamps_ns))
 
     def prior(stamp_ns: int) -> tuple[np.ndarray, np.ndarray] | None:
-        return None if belief is None else predict_hand_pose(belief, stamp_ns)
+        return None if model is None else predict_hand_pose(model, stamp_ns)
 
     for i, stamp in enumerate(demo.stamps_ns):
         t0 = time.perf_counter()
@@ -67,15 +67,22 @@ def run_pipeline(demo: Demonstration, tracker_config: TrackerConfig | None = Non
                                visibility=np.asarray(demo.visibility[i], float))
         body = tracker.step(int(stamp), [hand], kinematic_prior=prior)
         if body is not None and body.initialized:
-            updated = estimator.update(int(stamp), body.pose, body.covariance[:6, :6])
-            belief = updated if updated is not None else belief
+            result = estimator.update(int(stamp), body.pose, body.covariance[:6, :6])
+            if result.model is not None:
+                model = result.model
         seconds[i] = time.perf_counter() - t0
-        history.append(belief)
-    final = belief if belief is not None else estimator.belief
-    return PipelineResult(final=final, history=history, stamps_ns=np.asarray(demo.stamps_ns),
-                          step_seconds=seconds)
+        history.append(model)
+    return PipelineResult(final=estimator.model, history=history,
+                          stamps_ns=np.asarray(demo.stamps_ns), step_seconds=seconds)
 
 
 def ablation_config(config: TrackerConfig | None = None) -> TrackerConfig:
     """The "without uncertainty models" variant of a tracker config."""
     return replace(config or TrackerConfig(), use_uncertainty_models=False)
+
+
+def demo_tangent_error_deg(model: KinematicModel, demo: Demonstration) -> float:
+    """Tangent error (deg) of ``model``'s most probable joint (:func:`joint_estimate`) against
+    ``demo``'s true joint, sampled along the true grasp path (camera frame)."""
+    truth = JointEstimate.from_joint(demo.truth.joint)
+    return float(np.degrees(tangent_error(truth, joint_estimate(model), demo.truth.grasp_points)))

@@ -12,15 +12,15 @@ import math
 import time
 from collections.abc import Callable, Iterable, Sequence
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 
 import numpy as np
 
+from services.common.protocol import KinematicModel
+from services.evaluation import baselines, metrics
+from services.evaluation.metrics import JointEstimate
 from services.evaluation.pipeline import ablation_config, joint_estimate, run_pipeline
-from services.kinematics import baselines, metrics
 from services.kinematics.config import KinematicsConfig
-from services.kinematics.estimator import KinematicBelief
-from services.kinematics.metrics import JointEstimate
 from services.synthetic.generator import (
     EVALUATION_SPLIT,
     TUNING_SPLIT,
@@ -65,14 +65,9 @@ class Settings:
     kinematics: KinematicsConfig
 
 
-def _truth(demo: Demonstration) -> JointEstimate:
-    j = demo.truth.joint
-    return JointEstimate(type=j.type, axis=np.asarray(j.axis), point=np.asarray(j.point))
-
-
 def _row(demo: Demonstration, method: str, est: JointEstimate, runtime: float,
          converge_s: float = math.nan) -> Row:
-    truth = _truth(demo)
+    truth = JointEstimate.from_joint(demo.truth.joint)
     positions = demo.truth.grasp_points
     line = (metrics.axis_line_distance(truth, est)
             if truth.type == "revolute" and est.type == "revolute" else math.nan)
@@ -90,7 +85,7 @@ def _ours(demo: Demonstration, method: str, tracker: TrackerConfig,
     t0 = time.perf_counter()
     result = run_pipeline(demo, tracker, kinematics)
     runtime = time.perf_counter() - t0
-    truth = _truth(demo)
+    truth = JointEstimate.from_joint(demo.truth.joint)
     estimates = _distinct_estimates(result.history)
     errors = metrics.tangent_errors_over_time(truth, estimates, demo.truth.grasp_points)
     converge = metrics.time_to_converge(result.stamps_ns, errors, CONVERGED_DEG)
@@ -98,13 +93,13 @@ def _ours(demo: Demonstration, method: str, tracker: TrackerConfig,
                 math.nan if converge is None else converge)
 
 
-def _distinct_estimates(history: Sequence[KinematicBelief | None]) -> list[JointEstimate | None]:
-    """Joint estimates per frame, converting each distinct belief once."""
+def _distinct_estimates(history: Sequence[KinematicModel | None]) -> list[JointEstimate | None]:
+    """Joint estimates per frame, converting each distinct model once."""
     out: list[JointEstimate | None] = []
-    last: tuple[KinematicBelief | None, JointEstimate | None] = (None, None)
-    for belief in history:
-        if belief is not last[0]:
-            last = (belief, None if belief is None else joint_estimate(belief))
+    last: tuple[KinematicModel | None, JointEstimate | None] = (None, None)
+    for model in history:
+        if model is not last[0]:
+            last = (model, None if model is None else joint_estimate(model))
         out.append(last[1])
     return out
 
@@ -176,7 +171,3 @@ def evaluate(split: str = "evaluation", seeds: int = 1, settings: Settings | Non
                 rows.extend(got)
                 report(i, task, got)
     return rows
-
-
-def row_dicts(rows: Iterable[Row]) -> list[dict[str, object]]:
-    return [asdict(r) for r in rows]

@@ -1,8 +1,14 @@
-"""Online kinematic-model estimator: hand body poses in, a belief over joint models out.
+"""Online kinematic-model estimator: hand body poses in, a :class:`KinematicModel` out.
+
+:meth:`KinematicEstimator.update` returns an :class:`UpdateResult`: the new model (the wire type,
+with ``seq`` 0: a publisher stamps its own with ``dataclasses.replace``) or why it rejected the input.
 
 Input per frame: ``stamp_ns`` (int, ns), ``T_frame_hand`` (4x4 pose of the hand body in ``frame``,
 the camera or world frame; the environment is static with pose I) and the 6x6 covariance of its left
 perturbation ``T = Exp(delta) T_hat`` (delta linear first, in ``frame``) [m^2, rad^2].
+``T_frame_hand`` must be rigid; it is checked where it enters handkse (the protocol decodes HandBody
+with :func:`services.common.se3.check_pose`; the evaluation passes the tracker's poses), not here:
+``update`` checks what protects its state (stamp type and order, shapes, finiteness, variances >= 0).
 
 Per accepted frame (docs/estimation.md#update-loop and the sections before it):
 
@@ -42,11 +48,12 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Literal, get_args
 
 import numpy as np
 from numpy.typing import NDArray
 
+from services.common.protocol import KinematicModel, PrismaticParams, RevoluteParams
 from services.kinematics.config import KinematicsConfig
 from services.kinematics.filters import (
     JOINT_TYPES,
@@ -65,70 +72,21 @@ Array = NDArray[np.float64]
 
 SNAPSHOT_VERSION = 1
 
-# Tolerance on the orthonormality of an input rotation (max |R^T R - I| entry).
-_ROTATION_TOLERANCE = 1e-6
-
-REJECT_REASONS: tuple[str, ...] = (
-    "invalid_stamp", "invalid_value", "bad_shape", "non_finite", "invalid_pose",
-    "invalid_covariance", "duplicate_stamp", "out_of_order")
+RejectReason = Literal["invalid_stamp", "invalid_value", "bad_shape", "non_finite",
+                       "invalid_covariance", "duplicate_stamp", "out_of_order"]
+REJECT_REASONS: tuple[RejectReason, ...] = get_args(RejectReason)
 
 _I3 = np.eye(3)
 _I6 = np.eye(6)
 
 
-@dataclass(frozen=True, eq=False)
-class PrismaticParams:
-    """Published prismatic parameters in ``frame``.
+@dataclass(frozen=True)
+class UpdateResult:
+    """What one :meth:`KinematicEstimator.update` did: ``model`` after an accepted pose, else None
+    and ``reason`` says why it was rejected (the state is then unchanged)."""
 
-    ``axis`` (3,) unit direction; ``q`` [m] joint value (hand displacement along ``axis`` from the
-    reference pose); ``dq`` [m/s]; ``covariance`` (4x4) of ``(b1, b2, q, dq)``, where ``(b1, b2)``
-    [rad] are axis coordinates in ``tangent_basis(axis)``: ``axis' = Exp(axis x (B b)) axis``.
-    """
-
-    axis: Array
-    q: float
-    dq: float
-    covariance: Array
-
-
-@dataclass(frozen=True, eq=False)
-class RevoluteParams:
-    """Published revolute parameters in ``frame``.
-
-    ``axis`` (3,) unit direction; ``point`` (3,) [m] the point of the axis closest to the frame
-    origin; ``q`` [rad] unbounded joint value (right-handed rotation about ``axis`` from the reference
-    pose); ``dq`` [rad/s]; ``covariance`` (7x7) of ``(b1, b2, px, py, pz, q, dq)`` with the axis
-    coordinates in ``tangent_basis(axis)``.
-    """
-
-    axis: Array
-    point: Array
-    q: float
-    dq: float
-    covariance: Array
-
-
-@dataclass(frozen=True, eq=False)
-class KinematicBelief:
-    """The estimator's belief after an update; field names match the wire ``KinematicModel``.
-
-    ``type``: ``"rigid"``, ``"prismatic"``, ``"revolute"``, ``"disconnected"`` or ``"unknown"`` (not
-    enough evidence yet). ``probabilities``: posterior over the four types (sums to 1).
-    ``prismatic`` / ``revolute``: parameters of each joint filter once it has started, else None.
-    ``reference_pose`` (4x4): ``T_frame_hand`` at q = 0. ``updates``: accepted hand poses.
-    ``frame_id``: the frame of every pose and vector. ``stamp_ns``: stamp of the last accepted pose
-    (0 before any). The hand pose at joint value q is ``Exp(q * screw) @ reference_pose``, screw
-    ``(axis, 0)`` or ``(point x axis, axis)`` (see ``services.kinematics.prediction``).
-    """
-
-    type: str
-    probabilities: dict[str, float]
-    prismatic: PrismaticParams | None
-    revolute: RevoluteParams | None
-    reference_pose: Array
-    updates: int
-    frame_id: str
-    stamp_ns: int
+    model: KinematicModel | None
+    reason: RejectReason | None = None
 
 
 def canonical_axis_sign(u: Array) -> float:
@@ -202,15 +160,13 @@ class KinematicEstimator:
     """Joint EKFs (rigid, prismatic, revolute, disconnected) and model selection, online.
 
     ``update`` never raises on bad input: it rejects malformed or non-finite poses/covariances and
-    duplicate or out-of-order stamps, counts them in ``rejected`` (reason -> count, cumulative, kept
-    across :meth:`reset`) and returns the unchanged belief. No I/O, no clock: time comes only from
-    the stamps.
+    duplicate or out-of-order stamps, says why in its :class:`UpdateResult` and keeps its state;
+    counting is the caller's. No I/O, no clock: time comes only from the stamps.
     """
 
     def __init__(self, config: KinematicsConfig | None = None, frame_id: str = "camera") -> None:
         self.config = KinematicsConfig() if config is None else config
         self.frame_id = frame_id
-        self.rejected: dict[str, int] = {}
         self._floor3 = self.config.measurement_noise_floor * _I3
         self._floor6 = self.config.measurement_noise_floor * _I6
         self.reset()
@@ -238,12 +194,12 @@ class KinematicEstimator:
             math.log(p) if p > 0.0 else -math.inf
             for p in (cfg.prior_rigid, cfg.prior_prismatic, cfg.prior_revolute,
                       cfg.prior_disconnected)])
-        self._belief = self._make_belief()
+        self._model = self._make_model()
 
     @property
-    def belief(self) -> KinematicBelief:
-        """The current belief (the one returned by the last accepted update)."""
-        return self._belief
+    def model(self) -> KinematicModel:
+        """The current model: the one of the last accepted update (``updates`` 0 before any)."""
+        return self._model
 
     @property
     def prismatic(self) -> PrismaticJoint | None:
@@ -279,8 +235,9 @@ class KinematicEstimator:
 
     # ---------------------------------------------------------------------------------- input
 
-    def _check(self, stamp_ns: Any, T: Any, cov: Any) -> tuple[str, Array, Array]:
-        """Validate the inputs; returns ``(reason or "", T, Sigma)`` with Sigma symmetrised."""
+    def _check(self, stamp_ns: Any, T: Any, cov: Any) -> tuple[RejectReason | None, Array, Array]:
+        """The guards that keep the state sound (see the module docstring for what is not
+        checked here); returns ``(reason or None, T, Sigma)`` with Sigma symmetrised."""
         empty = _I3
         if isinstance(stamp_ns, bool) or not isinstance(stamp_ns, (int, np.integer)):
             return "invalid_stamp", empty, empty
@@ -293,19 +250,6 @@ class KinematicEstimator:
             return "bad_shape", empty, empty
         if not (math.isfinite(float(T.sum())) and math.isfinite(float(cov.sum()))):
             return "non_finite", empty, empty
-        (r00, r01, r02, _), (r10, r11, r12, _), (r20, r21, r22, _), last = T.tolist()
-        tol = _ROTATION_TOLERANCE
-        if (abs(last[0]) + abs(last[1]) + abs(last[2]) + abs(last[3] - 1.0) > 1e-9
-                or abs(r00 * r00 + r10 * r10 + r20 * r20 - 1.0) > tol
-                or abs(r01 * r01 + r11 * r11 + r21 * r21 - 1.0) > tol
-                or abs(r02 * r02 + r12 * r12 + r22 * r22 - 1.0) > tol
-                or abs(r00 * r01 + r10 * r11 + r20 * r21) > tol
-                or abs(r00 * r02 + r10 * r12 + r20 * r22) > tol
-                or abs(r01 * r02 + r11 * r12 + r21 * r22) > tol
-                # det > 0: (col0 x col1) . col2
-                or ((r10 * r21 - r20 * r11) * r02 + (r20 * r01 - r00 * r21) * r12
-                    + (r00 * r11 - r10 * r01) * r22) <= 0.0):
-            return "invalid_pose", empty, empty
         cov = (cov + cov.T) * 0.5
         if min(cov.diagonal().tolist()) < 0.0:
             return "invalid_covariance", empty, empty
@@ -314,20 +258,19 @@ class KinematicEstimator:
                 return "duplicate_stamp", empty, empty
             if int(stamp_ns) < self._last_stamp:
                 return "out_of_order", empty, empty
-        return "", T, cov
+        return None, T, cov
 
     # ---------------------------------------------------------------------------------- update
 
-    def update(self, stamp_ns: int, T_frame_hand: Array, pose_covariance: Array) -> KinematicBelief:
-        """Absorb one hand body pose and return the new belief (the old one if rejected).
+    def update(self, stamp_ns: int, T_frame_hand: Array, pose_covariance: Array) -> UpdateResult:
+        """Absorb one hand body pose; the result holds the new model, or why it was rejected.
 
-        ``stamp_ns`` [ns] strictly increasing; ``T_frame_hand`` (4x4) in ``frame``;
+        ``stamp_ns`` [ns] strictly increasing; ``T_frame_hand`` (4x4) rigid, in ``frame``;
         ``pose_covariance`` (6x6) of the left perturbation in ``frame``, linear first.
         """
         reason, T, Sigma = self._check(stamp_ns, T_frame_hand, pose_covariance)
-        if reason:
-            self.rejected[reason] = self.rejected.get(reason, 0) + 1
-            return self._belief
+        if reason is not None:
+            return UpdateResult(model=None, reason=reason)
         stamp = int(stamp_ns)
         position = T[:3, 3]
         if self._T0 is None:
@@ -335,8 +278,8 @@ class KinematicEstimator:
             self._selector.add(np.zeros(3), _I3, 0.0, 0.0)
             self._updates = 1
             self._log_scores = self._selector.log_scores(None, None, position, position)
-            self._belief = self._make_belief()
-            return self._belief
+            self._model = self._make_model()
+            return UpdateResult(model=self._model)
 
         cfg = self.config
         dt = (stamp - self._last_stamp) * 1e-9 if self._last_stamp is not None else 0.0
@@ -391,8 +334,8 @@ class KinematicEstimator:
         self._log_scores = self._selector.log_scores(self._prismatic, self._revolute, position,
                                                      T0[:3, 3])
         self._updates += 1
-        self._belief = self._make_belief()
-        return self._belief
+        self._model = self._make_model()
+        return UpdateResult(model=self._model)
 
     def _significant(self, v: Array, Sigma_v: Array) -> bool:
         """Whether ``v^T Sigma_v^-1 v >= min_motion_sigmas^2`` (``Sigma_v`` floored)."""
@@ -421,7 +364,7 @@ class KinematicEstimator:
             return not self._rotation_pending
         return (self._last_stamp - self._stamp0) * 1e-9 >= cfg.min_still_duration_for_rigid_s
 
-    def _make_belief(self) -> KinematicBelief:
+    def _make_model(self) -> KinematicModel:
         scores = self._log_scores.tolist()
         top = max(scores)
         weights = [math.exp(x - top) for x in scores]
@@ -438,15 +381,16 @@ class KinematicEstimator:
         else:
             reference = self._T0.copy()
         reference.flags.writeable = False
-        return KinematicBelief(
+        return KinematicModel(
+            seq=0,
+            stamp_ns=0 if self._last_stamp is None else self._last_stamp,
+            frame_id=self.frame_id,
             type=model_type,
             probabilities=dict(zip(JOINT_TYPES, probs, strict=True)),
             prismatic=None if self._prismatic is None else prismatic_params(self._prismatic),
             revolute=None if self._revolute is None else revolute_params(self._revolute),
             reference_pose=reference,
             updates=self._updates,
-            frame_id=self.frame_id,
-            stamp_ns=0 if self._last_stamp is None else self._last_stamp,
         )
 
     # ---------------------------------------------------------------------------------- snapshot
@@ -456,7 +400,6 @@ class KinematicEstimator:
         return {
             "version": SNAPSHOT_VERSION,
             "frame_id": self.frame_id,
-            "rejected": dict(self.rejected),
             "reference_pose": None if self._T0 is None else self._T0.copy(),
             "reference_covariance": self._Sigma0.copy(),
             "stamp0_ns": self._stamp0,
@@ -477,7 +420,6 @@ class KinematicEstimator:
         if d.get("version") != SNAPSHOT_VERSION:
             raise ValueError(f"unsupported kinematics snapshot version {d.get('version')!r}")
         est = cls(config, frame_id=str(d["frame_id"]))
-        est.rejected = {str(k): int(v) for k, v in d["rejected"].items()}
         if d["reference_pose"] is not None:
             est._set_reference(np.array(d["reference_pose"], dtype=float),
                                np.array(d["reference_covariance"], dtype=float),
@@ -493,16 +435,15 @@ class KinematicEstimator:
         est._selector = ModelSelector.from_state(config, d["selector"])
         est._log_scores = np.array(d["log_scores"], dtype=float)
         est._rotation_pending = bool(d.get("rotation_pending", False))
-        est._belief = est._make_belief()
+        est._model = est._make_model()
         return est
 
 
 __all__ = [
     "REJECT_REASONS",
-    "KinematicBelief",
     "KinematicEstimator",
-    "PrismaticParams",
-    "RevoluteParams",
+    "RejectReason",
+    "UpdateResult",
     "canonical_axis_sign",
     "prismatic_params",
     "revolute_params",

@@ -1,19 +1,18 @@
 """Hand pose predicted from a kinematic model: the tracker's third motion model, and anyone else's.
 
-One function, :func:`predict_hand_pose`, duck-typed on the attribute names of the wire
-``KinematicModel`` (``services/common/protocol.py``) and of
-:class:`services.kinematics.estimator.KinematicBelief`: ``type``, ``prismatic.{axis, q, dq,
-covariance}``, ``revolute.{axis, point, q, dq, covariance}``, ``reference_pose``, ``stamp_ns``.
+One function, :func:`predict_hand_pose`, on the one model type
+:class:`services.common.protocol.KinematicModel` (published by the kinematics service, returned by
+:class:`services.kinematics.estimator.KinematicEstimator`).
 """
 
 from __future__ import annotations
 
 import math
-from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
+from services.common.protocol import KinematicModel
 from services.kinematics.filters import (
     prismatic_twist_jacobian,
     revolute_delta,
@@ -25,16 +24,16 @@ from services.kinematics.filters import (
 Array = NDArray[np.float64]
 
 
-def _unit(v: Any) -> Array:
+def _unit(v: Array) -> Array:
     u = np.asarray(v, dtype=float).reshape(3)
     return u / math.sqrt(float(u @ u))
 
 
-def predict_hand_pose(belief_like: Any, stamp_ns: int) -> tuple[Array, Array] | None:
+def predict_hand_pose(model: KinematicModel, stamp_ns: int) -> tuple[Array, Array] | None:
     """Predicted hand pose ``T_frame_hand`` (4x4) at ``stamp_ns`` and its 6x6 covariance, or None.
 
     - prismatic / revolute: ``T = Exp(q_pred * screw) @ reference_pose`` with
-      ``q_pred = q + dq * (stamp_ns - belief.stamp_ns) * 1e-9``; the screw is ``(u, 0)`` (prismatic)
+      ``q_pred = q + dq * (stamp_ns - model.stamp_ns) * 1e-9``; the screw is ``(u, 0)`` (prismatic)
       or ``(p x u, u)`` (revolute). The covariance is that of the left perturbation of ``T`` in
       ``frame`` (linear first), propagated from the model covariance (axis in
       ``tangent_basis(axis)`` coordinates, point, q, dq) through the exact Jacobian of ``Exp``; it
@@ -44,13 +43,13 @@ def predict_hand_pose(belief_like: Any, stamp_ns: int) -> tuple[Array, Array] | 
       ``reference_pose`` with zero (parameter) covariance.
     - unknown, disconnected, or a type whose parameters are missing: None (no kinematic prediction).
     """
-    model_type = belief_like.type
-    T_ref = np.asarray(belief_like.reference_pose, dtype=float)
+    model_type = model.type
+    T_ref = np.asarray(model.reference_pose, dtype=float)
     if model_type == "rigid":
         return T_ref.copy(), np.zeros((6, 6))
-    dt = (int(stamp_ns) - int(belief_like.stamp_ns)) * 1e-9
+    dt = (int(stamp_ns) - int(model.stamp_ns)) * 1e-9
     if model_type == "prismatic":
-        prm = belief_like.prismatic
+        prm = model.prismatic
         if prm is None:
             return None
         u = _unit(prm.axis)
@@ -62,7 +61,7 @@ def predict_hand_pose(belief_like: Any, stamp_ns: int) -> tuple[Array, Array] | 
         D = np.eye(4)
         D[:3, 3] = q * u
     elif model_type == "revolute":
-        rev = belief_like.revolute
+        rev = model.revolute
         if rev is None:
             return None
         u = _unit(rev.axis)

@@ -1,8 +1,12 @@
 """Kinematics service: HandBody in, KinematicModel out; the current model answers ``get``.
 
 Subscribes ``handkse/{rig}/hand/body``, publishes ``handkse/{rig}/kinematics/model`` after every
-update, answers ``get`` on the same key (msgpack, or JSON with ``?format=json``), and restarts
-the demonstration on ``reset``. After every update the estimator's state is written atomically
+accepted update (with its own ``seq``; the estimator's models carry 0), answers ``get`` on the
+same key (msgpack, or JSON with ``?format=json``), and restarts the demonstration on ``reset``.
+A reset publishes nothing: the next model is the one of the first hand body of the new
+demonstration; until then ``get`` answers the empty model (``updates`` 0, ``stamp_ns`` 0, type
+unknown), as at a first start (docs/protocol.md). A rejected hand body is counted under the
+estimator's reason for that body. After every update the estimator's state is written atomically
 (temporary file + rename, by a writer thread off the update path) to the state file and restored
 at start, so a killed and restarted service continues the demonstration where it was.
 """
@@ -13,42 +17,21 @@ import argparse
 import json
 import logging
 import threading
+from dataclasses import replace
 from pathlib import Path
-
-import numpy as np
 
 from services.common.bus import JSON, Bus, QueryAnswer, QueryRequest, options_from_args
 from services.common.config import section_from_args
 from services.common.keys import Keys
-from services.common.protocol import (
-    HandBody,
-    KinematicModel,
-    PrismaticParams,
-    RevoluteParams,
-)
+from services.common.protocol import HandBody, KinematicModel
 from services.common.service import BusLike, Service, stop_on_signals
 from services.common.state_file import StateFile
 from services.kinematics.config import KinematicsConfig
-from services.kinematics.estimator import KinematicBelief, KinematicEstimator
+from services.kinematics.estimator import KinematicEstimator
 
 log = logging.getLogger(__name__)
 
 SNAPSHOT_VERSION = 1
-
-
-def model_message(belief: KinematicBelief, seq: int) -> KinematicModel:
-    """The wire form of an estimator belief."""
-    p, r = belief.prismatic, belief.revolute
-    return KinematicModel(
-        seq=seq, stamp_ns=int(belief.stamp_ns), frame_id=belief.frame_id, type=belief.type,
-        probabilities={k: float(v) for k, v in belief.probabilities.items()},
-        prismatic=None if p is None else PrismaticParams(
-            axis=np.asarray(p.axis, "<f8"), q=float(p.q), dq=float(p.dq),
-            covariance=np.asarray(p.covariance, "<f8")),
-        revolute=None if r is None else RevoluteParams(
-            axis=np.asarray(r.axis, "<f8"), point=np.asarray(r.point, "<f8"), q=float(r.q),
-            dq=float(r.dq), covariance=np.asarray(r.covariance, "<f8")),
-        reference_pose=np.asarray(belief.reference_pose, "<f8"), updates=int(belief.updates))
 
 
 class KinematicsNode:
@@ -60,7 +43,7 @@ class KinematicsNode:
         self.config = config
         self.state_file = StateFile(state_file, SNAPSHOT_VERSION)
         self.estimator = self._restore() or KinematicEstimator(config)
-        self._latest = model_message(self.estimator.belief, 0)
+        self._latest = self.estimator.model
         self._lock = threading.Lock()
         keys = service.keys
         service.subscribe(keys.hand_body, HandBody, self.on_body)
@@ -77,7 +60,7 @@ class KinematicsNode:
             log.warning("ignoring unusable state file %s: %s", self.state_file.path, exc)
             return None
         log.info("restored kinematics state from %s (%d updates)", self.state_file.path,
-                 estimator.belief.updates)
+                 estimator.model.updates)
         return estimator
 
     def _save(self) -> None:
@@ -89,31 +72,31 @@ class KinematicsNode:
         if body.frame_id != self.estimator.frame_id:
             # A fresh estimator adopts the frame of its first body; a camera<->world switch in
             # the middle of a demonstration cannot continue it, so it starts a new one.
-            if self.estimator.belief.updates > 0:
+            if self.estimator.model.updates > 0:
                 self.service.reject("frame_changed",
                                     f"{self.estimator.frame_id} -> {body.frame_id}")
             self.estimator = KinematicEstimator(self.config, frame_id=body.frame_id)
-        before = sum(self.estimator.rejected.values())
         with self.service.latency.measure("update"):
-            belief = self.estimator.update(body.stamp_ns, np.array(body.pose),
-                                           np.array(body.covariance[:6, :6]))
-        if sum(self.estimator.rejected.values()) > before:
-            reason = max(self.estimator.rejected, key=lambda r: self.estimator.rejected[r])
-            self.service.reject(reason, f"hand body at {body.stamp_ns} ns")
+            result = self.estimator.update(body.stamp_ns, body.pose, body.covariance[:6, :6])
+        if result.reason is not None:
+            self.service.reject(result.reason, f"hand body at {body.stamp_ns} ns")
             return
-        self._publish(belief)
+        assert result.model is not None
+        self._publish(result.model)
         self._save()
 
-    def _publish(self, belief: KinematicBelief) -> None:
+    def _publish(self, model: KinematicModel) -> None:
         keys = self.service.keys
-        message = model_message(belief, self.service.next_seq(keys.kinematics_model))
+        message = replace(model, seq=self.service.next_seq(keys.kinematics_model))
         with self._lock:
             self._latest = message
         self.service.publish(keys.kinematics_model, message)
 
     def reset(self) -> None:
+        """Forget the demonstration; publish nothing until its first hand body (module docstring)."""
         self.estimator.reset()
-        self._publish(self.estimator.belief)
+        with self._lock:
+            self._latest = self.estimator.model
         self._save()
 
     def answer_model(self, request: QueryRequest) -> QueryAnswer:

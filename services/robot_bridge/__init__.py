@@ -6,12 +6,14 @@ Modules (nothing heavy is imported here; MuJoCo and panda-python load only where
 - :mod:`~services.robot_bridge.controller`: the Jacobian-transpose Cartesian impedance law;
 - :mod:`~services.robot_bridge.trajectory`: model -> base frame, minimum-jerk articulation plans;
 - :mod:`~services.robot_bridge.safety`: pure clamps and checks with stable refusal reasons;
-- :mod:`~services.robot_bridge.backend`: the ``RobotBackend`` protocol and ``make_backend``;
+- :mod:`~services.robot_bridge.backend`: the ``RobotBackend`` protocol and ``BackendState``;
+- :mod:`~services.robot_bridge.factory`: ``make_backend`` (panda-python is imported there only);
 - :mod:`~services.robot_bridge.mujoco_backend`, :mod:`~services.robot_bridge.panda_scene`:
   the simulated Panda and objects;
 - :mod:`~services.robot_bridge.pandapy_backend`: a real Panda through panda-python;
 - :mod:`~services.robot_bridge.executor`: ``execute`` (tick loop with aborts) and ``Bridge``;
 - :mod:`~services.robot_bridge.service`: ``handkse robot-bridge``;
-- :mod:`~services.robot_bridge.simulation`: ``articulate_in_simulation`` (used by the demo);
-- :mod:`~services.robot_bridge.trials`: ``handkse robot-trials`` (Table III in simulation).
+- :mod:`~services.robot_bridge.simulation`: ``articulate_in_simulation`` (used by the demo).
+
+The simulated robot trials (``handkse robot-trials``) are evaluation: :mod:`services.evaluation.robot_trials`.
 """

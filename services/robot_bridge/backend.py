@@ -1,26 +1,23 @@
-"""The narrow robot interface the bridge drives, and the factory that picks an implementation.
+"""The narrow robot interface the bridge drives: the ``RobotBackend`` protocol and its state.
 
 A backend runs a Cartesian impedance controller on the arm (the law of
 :mod:`services.robot_bridge.controller`) whose target the bridge moves every control tick:
 ``command(target, twist)`` then ``step()``, reading ``read()`` in between. Two
 implementations: :class:`~services.robot_bridge.mujoco_backend.MujocoBackend` (simulated Panda
 and object; the test double) and :class:`~services.robot_bridge.pandapy_backend.PandaPyBackend`
-(a real Panda through panda-python, imported only inside :func:`make_backend`).
+(a real Panda through panda-python); :func:`services.robot_bridge.factory.make_backend` picks one.
+This module imports neither, so both can import it.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Protocol
+from typing import Protocol
 
 import numpy as np
 from numpy.typing import NDArray
 
 from services.robot_bridge.controller import ImpedanceGains
-
-if TYPE_CHECKING:
-    from services.robot_bridge.config import RobotBridgeConfig
-    from services.robot_bridge.panda_scene import ObjectSpec
 
 Array = NDArray[np.float64]
 
@@ -94,32 +91,3 @@ class RobotBackend(Protocol):
     def close(self) -> None:
         """Release the robot or simulation."""
         ...
-
-
-def make_backend(config: RobotBridgeConfig, obj: ObjectSpec | None = None) -> RobotBackend:
-    """The backend named by ``config.backend``; vendor packages are imported only here.
-
-    ``obj``: the simulated object (MuJoCo only; default: the configured ``sim_object`` preset at
-    the nominal grasp pose).
-    """
-    if config.backend == "mujoco":
-        from services.robot_bridge.mujoco_backend import MujocoBackend, preset_object
-
-        return MujocoBackend(obj or preset_object(config.sim_object), config)
-    if config.backend == "panda":
-        if not config.robot_host:
-            raise ValueError("robot_bridge.robot_host must name the Panda's address for "
-                             "backend 'panda'")
-        if np.allclose(config.base_T_camera(), np.eye(4)):
-            raise ValueError("robot_bridge.T_base_camera is the identity: set the hand-eye "
-                             "calibration before driving a real robot")
-        try:
-            import panda_py
-            from panda_py import controllers
-        except ImportError as exc:
-            raise ValueError("backend 'panda' needs panda-python: pip install 'handkse[panda]'"
-                             ) from exc
-        from services.robot_bridge.pandapy_backend import PandaPyBackend
-
-        return PandaPyBackend(panda_py.Panda(config.robot_host), controllers, config)
-    raise ValueError(f"unknown backend {config.backend!r}")

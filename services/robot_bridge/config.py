@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from services.common.se3 import check_pose
 from services.robot_bridge.controller import ImpedanceGains
 
 BACKENDS = ("mujoco", "panda")
@@ -162,11 +163,8 @@ def _check_calibration(name: str, values: tuple[float, ...], required: bool) -> 
     T = np.asarray(values, float)
     if T.shape != (16,):
         raise ValueError(f"{name} needs 16 numbers (row-major 4x4), got {T.size}")
-    T = T.reshape(4, 4)
-    R = T[:3, :3]
-    if (np.abs(R.T @ R - np.eye(3)).max() > 1e-6 or abs(np.linalg.det(R) - 1.0) > 1e-6
-            or np.abs(T[3] - (0.0, 0.0, 0.0, 1.0)).max() > 0.0):
-        raise ValueError(f"{name} is not a rigid transform")
+    if (problem := check_pose(T.reshape(4, 4))) is not None:
+        raise ValueError(f"{name} is not a rigid transform: {problem}")
 
 
 SECTION = "robot_bridge"

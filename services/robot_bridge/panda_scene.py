@@ -24,7 +24,7 @@ from typing import Literal
 import numpy as np
 from numpy.typing import NDArray
 
-from services.common.se3 import quat_wxyz_from_matrix
+from services.common.se3 import check_pose, quat_wxyz_from_matrix
 
 Array = NDArray[np.float64]
 
@@ -104,9 +104,8 @@ class ObjectSpec:
         a = np.asarray(self.axis_base, float)
         if a.shape != (3,) or abs(float(np.linalg.norm(a)) - 1.0) > 1e-6:
             raise ValueError(f"axis_base must be a unit 3-vector, got {a}")
-        T = np.asarray(self.T_base_handle, float)
-        if T.shape != (4, 4) or np.abs(T[:3, :3].T @ T[:3, :3] - np.eye(3)).max() > 1e-6:
-            raise ValueError("T_base_handle must be a 4x4 rigid transform")
+        if (problem := check_pose(self.T_base_handle)) is not None:
+            raise ValueError(f"T_base_handle must be a 4x4 rigid transform: {problem}")
 
     @property
     def lever_m(self) -> float:

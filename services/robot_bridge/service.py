@@ -51,9 +51,10 @@ from services.common.protocol import (
     RobotState,
 )
 from services.common.service import BusLike, Service, stop_on_signals
-from services.robot_bridge.backend import BackendState, RobotBackend, make_backend
+from services.robot_bridge.backend import BackendState, RobotBackend
 from services.robot_bridge.config import RobotBridgeConfig, config_from_args
 from services.robot_bridge.executor import Bridge
+from services.robot_bridge.factory import make_backend
 from services.robot_bridge.safety import Refusal, check_cached_model
 from services.robot_bridge.trajectory import ArticulationPlan
 

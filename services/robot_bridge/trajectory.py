@@ -22,7 +22,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from services.common.protocol import KinematicModel
-from services.common.se3 import quat_wxyz_from_matrix
+from services.common.se3 import quat_wxyz_from_matrix, so3_exp_fast
 from services.robot_bridge.safety import Refusal
 
 Array = NDArray[np.float64]
@@ -84,16 +84,6 @@ def cross3(a: Array, b: Array) -> Array:
     return np.array([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0])
 
 
-def _rotation(axis: Array, angle: float) -> Array:
-    """Rodrigues' rotation about a unit ``axis`` (scalar maths; called every control tick)."""
-    x, y, z = float(axis[0]), float(axis[1]), float(axis[2])
-    c, s = math.cos(angle), math.sin(angle)
-    C = 1.0 - c
-    return np.array([[c + x * x * C, x * y * C - z * s, x * z * C + y * s],
-                     [y * x * C + z * s, c + y * y * C, y * z * C - x * s],
-                     [z * x * C - y * s, z * y * C + x * s, c + z * z * C]])
-
-
 @dataclass(frozen=True)
 class ArticulationPlan:
     """A minimum-jerk articulation of ``amount`` (rad or m) over ``duration_s``, then a hold."""
@@ -117,7 +107,7 @@ class ArticulationPlan:
         T = _EYE4.copy()
         twist = np.zeros(6)
         if self.joint.joint_type == "revolute":
-            Ra = _rotation(a, theta)
+            Ra = so3_exp_fast(theta * a)
             c = self.joint.point
             T[:3, 3] = c + Ra @ (T0[:3, 3] - c)
             T[:3, :3] = Ra @ T0[:3, :3]

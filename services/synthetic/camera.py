@@ -99,7 +99,8 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.special import ndtr
 
-from services.synthetic.hand import CHAINS, LANDMARK_TYPES, N_LANDMARKS, PARENT
+from services.common.protocol import NUM_LANDMARKS
+from services.synthetic.hand import CHAINS, LANDMARK_TYPES, PARENT
 
 Array = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
@@ -299,8 +300,8 @@ def observe_landmarks(rng: np.random.Generator, landmarks_c: Array, R_c_hand: Ar
     # 1. 2-D errors.
     palm_px = palm_length_m * K.fx / z_true.mean(axis=1)
     sigma = m.pixel_sigma(palm_px)                                     # (N, 21)
-    slow = ornstein_uhlenbeck(rng, t, m.slow_time_constant_s, (N_LANDMARKS, 2))
-    white = rng.standard_normal((n, N_LANDMARKS, 2))
+    slow = ornstein_uhlenbeck(rng, t, m.slow_time_constant_s, (NUM_LANDMARKS, 2))
+    white = rng.standard_normal((n, NUM_LANDMARKS, 2))
     err = sigma[..., None] * (np.sqrt(m.slow_variance_fraction) * slow
                               + np.sqrt(1.0 - m.slow_variance_fraction) * white)
 
@@ -309,10 +310,10 @@ def observe_landmarks(rng: np.random.Generator, landmarks_c: Array, R_c_hand: Ar
     to_cam = -centre / np.linalg.norm(centre, axis=-1, keepdims=True)
     cos_dorsal = np.einsum("ni,ni->n", R_c_hand[:, :, 2], to_cam)
     p_occ = m.occlusion_probability(occlusion_level, cos_dorsal)        # (N, 21)
-    latent = ndtr(ornstein_uhlenbeck(rng, t, m.occlusion_time_constant_s, (N_LANDMARKS,)))
+    latent = ndtr(ornstein_uhlenbeck(rng, t, m.occlusion_time_constant_s, (NUM_LANDMARKS,)))
     occluded = latent < p_occ
     missing = latent < m.missing_fraction * p_occ
-    halluc = ornstein_uhlenbeck(rng, t, m.slow_time_constant_s, (N_LANDMARKS, 2))
+    halluc = ornstein_uhlenbeck(rng, t, m.slow_time_constant_s, (NUM_LANDMARKS, 2))
     err = err + np.where(occluded[..., None],
                          m.hallucination_palm_fraction * palm_px[:, None, None] * halluc, 0.0)
     pixels = px_true + err
@@ -328,18 +329,18 @@ def observe_landmarks(rng: np.random.Generator, landmarks_c: Array, R_c_hand: Ar
     mixed = ~off & (e_perp > w_px - m.depth_pixel_in_colour_px)
     frac = np.clip(e_perp / w_px, 0.0, 1.0)
     z_fg = z_true - radii * np.sqrt(1.0 - frac * frac)
-    near = rng.random((n, N_LANDMARKS)) < m.background_near_probability
-    z_bg = z_true + np.where(near, rng.uniform(*m.background_near_m, (n, N_LANDMARKS)),
-                             rng.uniform(*m.background_far_m, (n, N_LANDMARKS)))
-    alpha = rng.random((n, N_LANDMARKS))
+    near = rng.random((n, NUM_LANDMARKS)) < m.background_near_probability
+    z_bg = z_true + np.where(near, rng.uniform(*m.background_near_m, (n, NUM_LANDMARKS)),
+                             rng.uniform(*m.background_far_m, (n, NUM_LANDMARKS)))
+    alpha = rng.random((n, NUM_LANDMARKS))
     z_read = np.where(off, z_bg, np.where(mixed, alpha * z_fg + (1.0 - alpha) * z_bg, z_fg))
-    invalid = mixed & (rng.random((n, N_LANDMARKS)) < m.mixed_invalid_probability)
-    z_read = np.where(occluded, z_true - rng.uniform(*m.occluder_in_front_m, (n, N_LANDMARKS)),
+    invalid = mixed & (rng.random((n, NUM_LANDMARKS)) < m.mixed_invalid_probability)
+    z_read = np.where(occluded, z_true - rng.uniform(*m.occluder_in_front_m, (n, NUM_LANDMARKS)),
                       z_read)
     invalid = np.where(occluded, missing, invalid)
     depth_outlier = occluded | off | mixed
     offset = rng.normal(0.0, m.depth_offset_std_m)
-    z_obs = z_read + offset + m.depth_sigma(z_read) * rng.standard_normal((n, N_LANDMARKS))
+    z_obs = z_read + offset + m.depth_sigma(z_read) * rng.standard_normal((n, NUM_LANDMARKS))
     if m.depth_quantum_m > 0:
         z_obs = np.round(z_obs / m.depth_quantum_m) * m.depth_quantum_m
     in_image = ((pixels[..., 0] >= 0) & (pixels[..., 0] <= K.width - 1)
@@ -349,14 +350,14 @@ def observe_landmarks(rng: np.random.Generator, landmarks_c: Array, R_c_hand: Ar
     points[~valid] = np.nan
 
     # 5. Visibility and hand score.
-    vis = np.where(occluded, rng.beta(*m.visibility_hallucinated, (n, N_LANDMARKS)),
-                   rng.beta(*m.visibility_visible, (n, N_LANDMARKS)))
-    vis = np.where(missing, rng.beta(*m.visibility_missing, (n, N_LANDMARKS)), vis)
+    vis = np.where(occluded, rng.beta(*m.visibility_hallucinated, (n, NUM_LANDMARKS)),
+                   rng.beta(*m.visibility_visible, (n, NUM_LANDMARKS)))
+    vis = np.where(missing, rng.beta(*m.visibility_missing, (n, NUM_LANDMARKS)), vis)
     vis = np.where(in_image, vis, 0.1 * vis)
     score = np.clip(0.95 - 0.25 * occluded.mean(axis=1) + rng.normal(0.0, 0.02, n), 0.0, 1.0)
 
     # 6. Swaps of adjacent finger chains.
-    swapped = np.zeros((n, N_LANDMARKS), dtype=bool)
+    swapped = np.zeros((n, NUM_LANDMARKS), dtype=bool)
     p_start = m.swap_rate_per_s / 30.0
     starts = np.flatnonzero(rng.random(n) < p_start)
     lo, hi = m.swap_duration_frames

@@ -51,12 +51,12 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from services.common.protocol import NUM_LANDMARKS
 from services.common.se3 import so3_exp
 from services.synthetic.objects import GraspType
 
 Array = NDArray[np.float64]
 
-N_LANDMARKS = 21
 LANDMARK_NAMES: tuple[str, ...] = (
     "wrist",
     "thumb_cmc", "thumb_mcp", "thumb_ip", "thumb_tip",
@@ -166,7 +166,7 @@ def landmarks_from_angles(shape: HandShape, angles: Array) -> Array:
     """
     angles = np.asarray(angles, dtype=float)
     batch = angles.shape[:-2]
-    out = np.zeros((*batch, N_LANDMARKS, 3))
+    out = np.zeros((*batch, NUM_LANDMARKS, 3))
     ez = np.array([0.0, 0.0, 1.0])
 
     mcps = shape.mcp_positions()

@@ -78,6 +78,7 @@ from services.common.se3 import (
     se3_inverse_fast,
     se3_left_jacobian_fast,
     se3_log_fast,
+    skew_batch,
 )
 from services.tracker.landmarks import adjugate_sym3, inv_sym3
 
@@ -90,9 +91,7 @@ _I3 = np.eye(3)
 _I6 = np.eye(6)
 _I12 = np.eye(12)
 # [v]x = (v @ _SKEW).reshape(3, 3); measurement Jacobian [I3, -[q]x] = q @ _H_Q + _H_I (flattened)
-_SKEW = np.zeros((3, 9))
-_SKEW[2, 1] = _SKEW[1, 6] = _SKEW[0, 5] = -1.0  # rows: v0, v1, v2; columns: row-major entries
-_SKEW[1, 2] = _SKEW[2, 3] = _SKEW[0, 7] = 1.0
+_SKEW = skew_batch(_I3).reshape(3, 9)  # rows: v0, v1, v2; columns: row-major entries
 _H_Q = np.zeros((3, 18))
 _H_Q[:, [3, 4, 5, 9, 10, 11, 15, 16, 17]] = -_SKEW
 _H_I = np.zeros(18)
@@ -109,12 +108,6 @@ class Prediction:
     xi: Array
     P: Array
     C: Array
-
-
-def skew_batch(v: Array) -> Array:
-    """``[v]x`` for a stack of 3-vectors (..., 3) -> (..., 3, 3)."""
-    out: Array = (v @ _SKEW).reshape(*v.shape[:-1], 3, 3)
-    return out
 
 
 def measurement_jacobians(points_frame: Array) -> Array:
@@ -573,5 +566,4 @@ __all__ = [
     "predicted_points",
     "prior_gate_passes",
     "select_and_gate",
-    "skew_batch",
 ]

@@ -40,12 +40,12 @@ from functools import lru_cache
 import numpy as np
 from numpy.typing import NDArray
 
+from services.common.protocol import NUM_LANDMARKS
 from services.tracker.config import TrackerConfig
 
 Array = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
 
-NUM_LANDMARKS = 21
 WRIST = 0
 
 _I3 = np.eye(3)

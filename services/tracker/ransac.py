@@ -32,6 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from services.common.kabsch import batched_kabsch, weighted_kabsch
 from services.common.se3 import pose_from_rotation_translation, se3_log
 
 Array = NDArray[np.float64]
@@ -55,45 +56,6 @@ class RansacResult:
     def transform(self) -> Array:
         """The motion as a 4x4 pose (maps window-start positions to window-end positions)."""
         return pose_from_rotation_translation(self.rotation, self.translation)
-
-
-def _rotation_from_cross_covariance(C: Array) -> Array:
-    """Proper rotations R maximising trace(R C') for a stack (..., 3, 3) of cross-covariances.
-
-    ``C = sum w (dst - dst_bar)(src - src_bar)'``; the SVD ``C = U S V'`` gives
-    ``R = U diag(1, 1, det(U V')) V'`` (Kabsch/Umeyama, reflection excluded).
-    """
-    U, _, Vt = np.linalg.svd(C)
-    R: Array = U @ Vt
-    if C.ndim == 2:  # one matrix: the sign of det(U V') on floats, a second product if negative
-        (a, b, c), (d, e, f), (g, h, i) = R.tolist()
-        if a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g) < 0.0:
-            U[:, 2] = -U[:, 2]
-            R = U @ Vt
-        return R
-    d = np.sign(np.linalg.det(R))
-    U[..., :, 2] *= np.where(d == 0.0, 1.0, d)[..., None]
-    R = U @ Vt
-    return R
-
-
-def weighted_kabsch(src: Array, dst: Array, weights: Array) -> tuple[Array, Array]:
-    """(R, t) minimising ``sum w_i |R src_i + t - dst_i|^2`` for (n, 3) points, n >= 3."""
-    w = weights / weights.sum()
-    src_bar = w @ src
-    dst_bar = w @ dst
-    C = ((dst - dst_bar) * w[:, None]).T @ (src - src_bar)
-    R = _rotation_from_cross_covariance(C)
-    return R, dst_bar - R @ src_bar
-
-
-def batched_kabsch(src: Array, dst: Array) -> tuple[Array, Array]:
-    """(R (k, 3, 3), t (k, 3)) for k sets of corresponding points (k, m, 3), uniform weights."""
-    src_bar = src.mean(axis=1)
-    dst_bar = dst.mean(axis=1)
-    C = np.einsum("kmi,kmj->kij", dst - dst_bar[:, None], src - src_bar[:, None])
-    R = _rotation_from_cross_covariance(C)
-    return R, dst_bar - np.einsum("kij,kj->ki", R, src_bar)
 
 
 def weighted_triplets(weights: Array, k: int, rng: np.random.Generator) -> IntArray:
@@ -215,10 +177,8 @@ def initial_body(positions: Array, variances: Array, valid: Array, stamps_s: Arr
 __all__ = [
     "InitialBody",
     "RansacResult",
-    "batched_kabsch",
     "initial_body",
     "mahalanobis_residuals",
     "rigid_ransac",
-    "weighted_kabsch",
     "weighted_triplets",
 ]

@@ -40,7 +40,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from services.common.se3 import skew
+from services.common.kabsch import weighted_kabsch
+from services.common.se3 import check_pose, skew
 from services.tracker.body import (
     MOTION_MODELS,
     HandBodyEkf,
@@ -58,7 +59,7 @@ from services.tracker.landmarks import (
     body_measurement_covariances,
     ray_measurement_covariances,
 )
-from services.tracker.ransac import initial_body, rigid_ransac, weighted_kabsch
+from services.tracker.ransac import initial_body, rigid_ransac
 
 Array = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
@@ -70,7 +71,6 @@ STATUS_USED = 1  # fresh measurement used by the body (or, before initialisation
 STATUS_OUTLIER = 2  # rejected this step (landmark gate, body gates or RANSAC)
 STATUS_EXCLUDED = 3  # the wrist, excluded by the saliency model
 
-_ROTATION_TOL = 1e-6
 _CHI2_3_99 = 11.345  # 99 % point of the chi-square distribution with 3 degrees of freedom
 _MAX_COORD_M = 1e3  # coordinates beyond 1 km are treated as missing (keeps the numerics finite)
 _I3 = np.eye(3)
@@ -130,19 +130,8 @@ class _WindowFrame:
 
 
 def _valid_pose(T: object) -> Array | None:
-    """T as a float (4, 4) rigid transform, or None if it is not one."""
-    try:
-        M = np.asarray(T, dtype=float)
-    except (TypeError, ValueError):
-        return None
-    if M.shape != (4, 4) or not np.isfinite(M).all():
-        return None
-    if np.abs(M[3] - (0.0, 0.0, 0.0, 1.0)).max() > 1e-9:
-        return None
-    Rm = M[:3, :3]
-    if np.abs(Rm.T @ Rm - np.eye(3)).max() > _ROTATION_TOL or np.linalg.det(Rm) <= 0.0:
-        return None
-    return M
+    """T as a float (4, 4) rigid transform, or None if it is not one (:func:`check_pose`)."""
+    return None if check_pose(T) is not None else np.asarray(T, dtype=float)
 
 
 def robust_centre(points: Array) -> Array:

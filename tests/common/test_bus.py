@@ -1,21 +1,29 @@
-"""The bus across real processes: router, queryables, liveliness, bad input to a service."""
+"""The bus across real processes: bad input to a service, liveliness after a kill.
+
+What one session sees of another (pub/sub, queries, errors, tokens) is the contract in
+``test_bus_contract.py``, which the in-memory fake passes too.
+"""
 
 from __future__ import annotations
 
 import logging
 import subprocess
 import sys
-import threading
 import time
 
 import pytest
 
-from services.common.bus import Bus, BusError, NoResponder, QueryAnswer, QueryRejected, QueryTimeout
+from services.common.bus import (
+    Bus,
+    BusError,
+    ZenohOptions,
+    wait_for_services,
+)
 from services.common.keys import Keys
 from services.common.processes import child_env
 from services.common.protocol import HandLandmarks, ServiceStats
 from tests.common import samples
-from tests.conftest import REPO, wait_until
+from tests.conftest import REPO, wait_routed, wait_until
 
 KEYS = Keys("t1")
 
@@ -26,49 +34,15 @@ def _start_echo(router: str, tmp_path) -> subprocess.Popen[str]:  # type: ignore
                             stdout=log, stderr=subprocess.STDOUT, env=child_env(), cwd=REPO, text=True)
 
 
-def test_queryable_answers_and_errors(client_bus: Bus) -> None:
-    def handler(req):  # type: ignore[no-untyped-def]
-        if req.parameters.get("fail"):
-            raise QueryRejected("asked to fail")
-        return QueryAnswer(b"answer:" + (req.payload or b""))
-
-    client_bus.declare_queryable("t1/q", handler)
-    assert client_bus.get("t1/q", payload=b"x") == [("t1/q", b"answer:x")]
-    with pytest.raises(BusError, match="asked to fail"):
-        client_bus.get("t1/q?fail=1")
-
-
-def test_get_without_responder_is_a_clear_error(client_bus: Bus) -> None:
-    with pytest.raises(NoResponder, match="nothing answers"):
-        client_bus.get("t1/nobody", timeout=0.5)
-
-
-def test_get_timeout_is_a_clear_error(client_bus: Bus, router: str) -> None:
-    release = threading.Event()
-
-    def slow(_req):  # type: ignore[no-untyped-def]
-        release.wait(3)
-        return QueryAnswer(b"late")
-
-    with Bus(client_bus.options) as other:
-        other.declare_queryable("t1/slow", slow)
-        time.sleep(0.2)
-        t0 = time.monotonic()
-        with pytest.raises(QueryTimeout, match="within"):
-            client_bus.get("t1/slow", timeout=0.5)
-        assert time.monotonic() - t0 < 2.5
-        release.set()
-
-
 def test_service_counts_bad_input_and_keeps_serving(client_bus: Bus, router: str,
                                                      tmp_path) -> None:  # type: ignore[no-untyped-def]
+    echoed: list[bytes] = []
+    client_bus.subscribe(f"{KEYS.root}/test/echo", lambda k, p: echoed.append(p))
+    wait_routed(client_bus)  # before the service connects, so it learns the subscription
     echo = _start_echo(router, tmp_path)
     try:
         wait_until(lambda: KEYS.alive("echo") in client_bus.alive(KEYS.alive_all), 20,
                    what="echo service liveliness")
-        echoed: list[bytes] = []
-        client_bus.subscribe(f"{KEYS.root}/test/echo", lambda k, p: echoed.append(p))
-        time.sleep(0.2)
         good = samples.hand_landmarks()
         bad = [b"", b"\xc1", b"\x93\x01\x02", samples.hand_body().to_msgpack(),
                good.to_msgpack()[:-5]]
@@ -118,3 +92,14 @@ def test_a_failing_queryable_is_answered_and_logged_once_a_second(
     # 30 failures within a few seconds: one line per second at most, each with its count.
     assert 1 <= len(lines) <= 1 + int(time.monotonic() - t0)
     assert all(r.exc_info is None for r in lines)
+
+
+def test_wait_for_services_sees_tokens_and_names_the_missing(client_bus: Bus, router: str) -> None:
+    options = ZenohOptions(mode="client", connect=(router,), multicast_scouting=False)
+    with Bus(options) as other:
+        other.declare_token(KEYS.alive("tracker"))
+        wait_for_services(client_bus, KEYS, ["tracker"], timeout=20.0)  # returns: token seen
+        with pytest.raises(BusError, match="not alive after") as err:
+            wait_for_services(client_bus, KEYS, ("tracker", "kinematics"), timeout=0.3)
+    assert KEYS.alive("kinematics") in str(err.value)
+    assert KEYS.alive("tracker") not in str(err.value)  # only what is missing is named

@@ -118,6 +118,33 @@ def test_invalid_fields_are_named(name: str, message: p.Message, path: list[str]
         type(message).from_msgpack(_mutate(message, path, value))
 
 
+def _bad_pose(kind: str) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, 3] = (0.1, 0.2, 0.6)
+    if kind == "skewed":
+        T[:3, :3] *= 1.01
+    elif kind == "reflected":
+        T[0, 0] = -1.0
+    else:  # an inexact bottom row
+        T[3, 2] = 1e-12
+    return T
+
+
+@pytest.mark.parametrize(("kind", "problem"), [
+    ("skewed", "not orthonormal"), ("reflected", "determinant"), ("bottom", "bottom row")])
+@pytest.mark.parametrize(("message", "path"), [
+    (samples.hand_body(), ["pose"]), (samples.kinematic_model(), ["reference_pose"]),
+    (samples.hand_landmarks(), ["T_world_camera"])], ids=["body", "model", "landmarks"])
+def test_non_rigid_poses_are_rejected_at_decode(kind: str, problem: str, message: p.Message,
+                                                path: list[str]) -> None:
+    """Decoding is where handkse checks that a pose is rigid (services.common.se3.check_pose);
+    the libraries that receive decoded messages do not check again."""
+    field = f"{type(message).__name__}.{path[0]}: not a rigid transform: "
+    with pytest.raises(p.ProtocolError, match=field + ".*" + problem) as info:
+        type(message).from_msgpack(_mutate(message, path, _array(_bad_pose(kind))))
+    assert info.value.reason == "bad_field"
+
+
 def test_unknown_extra_keys_are_ignored() -> None:
     msg = samples.kinematic_model()
     obj = msgpack.unpackb(msg.to_msgpack(), raw=False)

@@ -125,3 +125,51 @@ def test_float_kernels_agree_with_the_numpy_maps(xi: np.ndarray) -> None:
     np.testing.assert_allclose(se3.so3_left_jacobian_fast(xi[3:]),
                                se3.so3_left_jacobian(xi[3:]), atol=1e-12)
     assert abs(se3.rotation_angle_fast(T[:3, :3]) - se3.rotation_angle(T[:3, :3])) < 1e-9
+
+
+def test_stacks_of_rotation_vectors_and_skews_match_one_at_a_time() -> None:
+    rng = np.random.default_rng(7)
+    # angles from 0 through the small-angle branch (1e-4) to past pi, in a (2, 5, 3) stack
+    scales = np.array([0.0, 1e-9, 5e-5, 2e-4, 0.7, 2.0, np.pi, 3.5, 6.0, 9.0])
+    axes = rng.normal(size=(10, 3))
+    axes /= np.linalg.norm(axes, axis=1)[:, None]
+    w = (axes * scales[:, None]).reshape(2, 5, 3)
+    R = se3.so3_exp(w)
+    K = se3.skew_batch(w)
+    assert R.shape == K.shape == (2, 5, 3, 3)
+    for i in np.ndindex(2, 5):
+        # same formula, terms summed in another order: agreement to a few ulps of |R| = 1
+        np.testing.assert_allclose(R[i], se3.so3_exp(w[i]), rtol=0, atol=1e-14)
+        np.testing.assert_array_equal(K[i], se3.skew(w[i]))
+        np.testing.assert_allclose(R[i] @ R[i].T, np.eye(3), rtol=0, atol=1e-14)
+@settings(max_examples=100, deadline=None)
+@given(twists())
+def test_check_pose_accepts_every_rigid_transform(xi: np.ndarray) -> None:
+    assert se3.check_pose(se3.se3_exp(xi)) is None
+
+
+def test_check_pose_names_the_problem() -> None:
+    T = se3.se3_exp(np.array([0.1, -0.2, 0.3, 0.4, 0.5, -0.6]))
+    skewed, reflected, bottom, nan = T.copy(), T.copy(), T.copy(), T.copy()
+    skewed[:3, :3] *= 1.01
+    reflected[:3, 0] *= -1.0
+    bottom[3, 0] = 1e-12
+    nan[1, 2] = np.nan
+    cases: list[tuple[object, str]] = [
+        (skewed, "not orthonormal"), (reflected, "determinant -1"), (bottom, "bottom row"),
+        (nan, "NaN"), (T[:3], "shape"), ("pose", "not a numeric array")]
+    for bad, words in cases:
+        problem = se3.check_pose(bad)
+        assert problem is not None and words in problem, (words, problem)
+
+
+def test_check_pose_tolerance() -> None:
+    """A diagonal entry 1 + e gives |R^T R - I| = 2e + e^2 and det 1 + e: 0.4 tol passes, 0.6
+    tol fails, and a tighter ``tol`` argument applies."""
+    tol = se3.POSE_TOLERANCE
+    near, far = np.eye(4), np.eye(4)
+    near[0, 0] = 1.0 + 0.4 * tol
+    far[0, 0] = 1.0 + 0.6 * tol
+    assert se3.check_pose(near) is None
+    assert se3.check_pose(far) is not None
+    assert se3.check_pose(near, tol=0.5 * tol) is not None

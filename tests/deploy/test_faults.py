@@ -2,8 +2,8 @@
 tracker, restart the router, cut the link to the tracker and kinematics for 3 s and 15 s, each
 in the middle of a demonstration.
 
-One :class:`~services.faults.FaultRig` serves the module: router, tracker and kinematics (behind
-a cuttable TCP link proxy), a robot bridge and an observer, every session with a 2 s lease.
+One :class:`~services.evaluation.drills.faults.FaultRig` serves the module: router, tracker and
+kinematics (behind a cuttable TCP link proxy), a robot bridge and an observer, every session with a 2 s lease.
 Each test replays the flap latch demonstration (130 frames, 4.3 s) at 2.5 x real time with its
 fault after 40 % of the frames and compares with an uninterrupted run. Measured times are
 printed, not asserted (``bench/faults.py`` records them); the bounds below are generous.
@@ -16,7 +16,7 @@ from collections.abc import Iterator
 
 import pytest
 
-from services.faults import Fault, FaultReport, FaultRig, run_scenario
+from services.evaluation.drills.faults import Fault, FaultReport, FaultRig, run_scenario
 from services.synthetic.generator import Demonstration, generate
 
 LEASE_S = 2.0

@@ -43,7 +43,7 @@ from services.common.recording import read_recording
 from services.synthetic.generator import generate
 from services.synthetic.replay import landmark_messages
 from tests.common import samples
-from tests.conftest import Processes, output_of, wait_until, zenoh_args
+from tests.conftest import Processes, output_of, wait_routed, wait_until, zenoh_args
 from tests.robot_bridge.test_service import _key_model
 
 if TYPE_CHECKING:  # the detector's modules need OpenCV, which the other tests do not
@@ -291,7 +291,7 @@ def test_tracker_and_kinematics_survive_fuzzing_and_keep_serving(
 
     for service in ("tracker", "kinematics"):
         # >=: a mutated payload may be a valid HandBody, and then kinematics publishes a
-        # (valid) model that the tracker also receives; so does every reset of kinematics
+        # (valid) model that the tracker also receives
         wait_until(lambda s=service: _stats(client_bus, KEYS, s)["received"] >= sent[s], 60,
                    what=f"{service} received everything: {sent[service]} sent, stats "
                         f"{_stats(client_bus, KEYS, service)}")
@@ -312,7 +312,7 @@ def test_tracker_and_kinematics_survive_fuzzing_and_keep_serving(
         client_bus.get(KEYS.reset(service))
     bodies: list[HandBody] = []
     client_bus.subscribe(KEYS.hand_body, lambda k, p: bodies.append(HandBody.from_msgpack(p)))
-    time.sleep(0.2)
+    wait_routed(client_bus)
     frames = landmark_messages(generate("slider", 3, 0))
     rejected_before = {s: _rejected(client_bus, KEYS, s) for s in sent}
     for m in frames:

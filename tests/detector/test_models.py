@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import io
 import json
 import shutil
 import time
@@ -13,6 +14,7 @@ import onnxruntime as ort
 import pytest
 from onnx import TensorProto, helper, numpy_helper
 
+from services.common.progress import Progress
 from services.detector import models
 from services.detector.config import DetectorConfig
 from services.detector.models import (
@@ -109,10 +111,16 @@ def test_prepare_reconverts_offline_from_the_kept_originals(
     monkeypatch.setattr(models, "_download_wheel", no_network)
     shutil.copytree(models_dir / "tflite", tmp_path / "tflite")
     shutil.copy(models_dir / "LICENSE.mediapipe", tmp_path / "LICENSE.mediapipe")
-    manifest = prepare(tmp_path, check=False)
+    log = io.StringIO()
+    manifest = prepare(tmp_path, check=False, progress=Progress(1, stream=log, tty=False))
     assert manifest["source"]["sha256"] == WHEEL.sha256
     for name in MODELS:
         assert model_path(name, tmp_path).stat().st_size > 1_000_000
+    # one plain line per step, counting down what is left (no fetch: the originals are there)
+    lines = log.getvalue().splitlines()
+    assert [line.split(" (")[0] for line in lines[:-1]] == [
+        f"[{i}/{len(MODELS)}] converting {name}" for i, name in enumerate(MODELS, 1)]
+    assert lines[-1].startswith(f"hand models ready in {tmp_path}")
 
 
 def test_a_wrong_wheel_is_refused(tmp_path: Path) -> None:

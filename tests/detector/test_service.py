@@ -6,7 +6,6 @@ import dataclasses
 import json
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import cv2
@@ -16,7 +15,7 @@ from services.common.bus import Bus
 from services.common.keys import Keys
 from services.common.protocol import HandLandmarks
 from services.detector.sources import CapturedFrame, FolderWriter, encode_frame
-from tests.conftest import Processes, output_of, wait_until, zenoh_args
+from tests.conftest import Processes, output_of, wait_routed, wait_until, zenoh_args
 from tests.detector.conftest import CATCHER_CROP, HAND_REGIONS, crop, intrinsics_for
 
 KEYS = Keys("det")
@@ -68,11 +67,11 @@ def in_hand_region(message: HandLandmarks, name: str) -> bool:
 def test_rgbd_frame_in_hand_landmarks_out_with_the_same_stamp(
         procs: Processes, router: str, client_bus: Bus, models_dir: Path,
         opencv_images: dict[str, np.ndarray]) -> None:
-    detector = start_detector(procs, router, client_bus, models_dir)
     received: list[HandLandmarks] = []
     client_bus.subscribe(KEYS.hand_landmarks,
                          lambda k, p: received.append(HandLandmarks.from_msgpack(p)))
-    time.sleep(0.3)  # let the subscription reach the router
+    wait_routed(client_bus)  # before the detector connects, so it learns the subscription
+    detector = start_detector(procs, router, client_bus, models_dir)
     first, second = frames(opencv_images)
 
     # frame=False (BLOCK) so that no frame is lost in this client: the drops counted below must
@@ -132,11 +131,11 @@ def test_camera_from_a_folder_to_the_detector(procs: Processes, router: str, cli
                                               models_dir: Path, tmp_path: Path,
                                               opencv_images: dict[str, np.ndarray]) -> None:
     stamps = _write_folder(tmp_path / "frames", opencv_images)
-    start_detector(procs, router, client_bus, models_dir)
     received: list[HandLandmarks] = []
     client_bus.subscribe(KEYS.hand_landmarks,
                          lambda k, p: received.append(HandLandmarks.from_msgpack(p)))
-    time.sleep(0.3)
+    wait_routed(client_bus)  # before the detector connects, so it learns the subscription
+    start_detector(procs, router, client_bus, models_dir)
     camera = start_module(procs, "services.detector.camera", "--rig", KEYS.rig,
                           *zenoh_args(router), "--folder", str(tmp_path / "frames"),
                           "--wait-for", "detector", name="camera")

@@ -83,7 +83,6 @@ def test_fast_geometry_matches_se3() -> None:
                                                                  abs=1e-9)
         a, b = rng.normal(size=3), rng.normal(size=3)
         np.testing.assert_allclose(g.cross3(a, b), np.cross(a, b), atol=1e-15)
-        np.testing.assert_allclose(g.skew3(a), se3.skew(a), atol=0)
 
 
 def test_revolute_left_jacobian_matches_se3() -> None:

@@ -1,17 +1,18 @@
 """predict_hand_pose: reproduces the demonstrated hand poses, extrapolates with dq, propagates the
-model covariance with the exact Jacobian, and is duck-typed on the wire model's field names."""
+model covariance with the exact Jacobian, and predicts the same from the estimator's model before
+and after the wire."""
 
 from __future__ import annotations
 
 import math
-from types import SimpleNamespace
-from typing import Any
+from dataclasses import replace
 
 import numpy as np
 import pytest
 
 from services.common import se3
-from services.kinematics.estimator import KinematicBelief, KinematicEstimator
+from services.common.protocol import KinematicModel, PrismaticParams, RevoluteParams
+from services.kinematics.estimator import KinematicEstimator
 from services.kinematics.filters import rotate_axis, tangent_basis
 from services.kinematics.prediction import predict_hand_pose
 from tests.kinematics import Sample, demo, prismatic_joint, revolute_joint, unit
@@ -19,11 +20,14 @@ from tests.kinematics import Sample, demo, prismatic_joint, revolute_joint, unit
 Array = np.ndarray
 
 
-def _run(samples: list[Sample]) -> KinematicBelief:
+PROBABILITIES = {"rigid": 0.25, "prismatic": 0.25, "revolute": 0.25, "disconnected": 0.25}
+
+
+def _run(samples: list[Sample]) -> KinematicModel:
     est = KinematicEstimator()
     for s in samples:
-        b = est.update(*s)
-    return b
+        assert est.update(*s).model is not None
+    return est.model
 
 
 @pytest.mark.parametrize("kind", ["prismatic", "revolute"])
@@ -52,36 +56,37 @@ def test_reproduces_and_extrapolates_the_demonstration(kind: str) -> None:
 
 def test_rigid_unknown_disconnected() -> None:
     T_ref = se3.se3_exp(np.array([0.1, 0.2, 0.6, 0.3, -0.2, 0.1]))
-    belief = SimpleNamespace(type="rigid", reference_pose=T_ref, stamp_ns=5, prismatic=None,
-                             revolute=None)
-    out = predict_hand_pose(belief, 10**9)
+    rigid = KinematicModel(type="rigid", probabilities=PROBABILITIES, reference_pose=T_ref,
+                           stamp_ns=5)
+    out = predict_hand_pose(rigid, 10**9)
     assert out is not None
     np.testing.assert_array_equal(out[0], T_ref)
     np.testing.assert_array_equal(out[1], np.zeros((6, 6)))
     for kind in ("unknown", "disconnected"):
-        belief.type = kind
-        assert predict_hand_pose(belief, 10**9) is None
-    belief.type = "revolute"  # parameters missing
-    assert predict_hand_pose(belief, 10**9) is None
+        assert predict_hand_pose(replace(rigid, type=kind), 10**9) is None
+    # parameters missing
+    assert predict_hand_pose(replace(rigid, type="revolute"), 10**9) is None
 
 
-def _model(kind: str, rng: np.random.Generator) -> SimpleNamespace:
+def _model(kind: str, rng: np.random.Generator) -> KinematicModel:
     axis = unit(rng.normal(size=3))
     A = rng.normal(size=(7, 7)) * 0.05
+    prismatic = revolute = None
     if kind == "prismatic":
-        params = SimpleNamespace(axis=axis.tolist(), q=0.05, dq=0.1, covariance=(A @ A.T)[:4, :4])
+        prismatic = PrismaticParams(axis=axis, q=0.05, dq=0.1, covariance=(A @ A.T)[:4, :4])
     else:
         point = rng.normal(size=3)
         point -= (point @ axis) * axis
-        params = SimpleNamespace(axis=axis, point=point, q=2.5, dq=-0.4, covariance=A @ A.T)
-    return SimpleNamespace(type=kind, reference_pose=se3.se3_exp(rng.normal(size=6)),
-                           stamp_ns=10**9, prismatic=params if kind == "prismatic" else None,
-                           revolute=params if kind == "revolute" else None)
+        revolute = RevoluteParams(axis=axis, point=point, q=2.5, dq=-0.4, covariance=A @ A.T)
+    return KinematicModel(type=kind, probabilities=PROBABILITIES,
+                          reference_pose=se3.se3_exp(rng.normal(size=6)), stamp_ns=10**9,
+                          prismatic=prismatic, revolute=revolute)
 
 
-def _pose_from(kind: str, m: Any, d: Array, stamp_ns: int) -> Array:
+def _pose_from(kind: str, m: KinematicModel, d: Array, stamp_ns: int) -> Array:
     """The predicted pose with the published parameters perturbed by ``d``."""
     p = m.prismatic if kind == "prismatic" else m.revolute
+    assert p is not None
     u = np.asarray(p.axis, dtype=float)
     u2 = rotate_axis(u, tangent_basis(u), d[:2])[0]
     dt = (stamp_ns - m.stamp_ns) * 1e-9
@@ -90,6 +95,7 @@ def _pose_from(kind: str, m: Any, d: Array, stamp_ns: int) -> Array:
         D = np.eye(4)
         D[:3, 3] = q * u2
     else:
+        assert isinstance(p, RevoluteParams)
         point = p.point + d[2:5]
         q = p.q + d[5] + (p.dq + d[6]) * dt
         D = se3.se3_exp(q * np.concatenate([np.cross(point, u2), u2]))
@@ -114,26 +120,18 @@ def test_covariance_is_the_exact_jacobian_propagation(kind: str) -> None:
         e[i] = eps
         J[:, i] = (se3.se3_log(_pose_from(kind, m, e, stamp) @ T_inv)
                    - se3.se3_log(_pose_from(kind, m, -e, stamp) @ T_inv)) / (2 * eps)
-    C = m.prismatic.covariance if kind == "prismatic" else m.revolute.covariance
+    params = m.prismatic if kind == "prismatic" else m.revolute
+    assert params is not None
+    C = params.covariance
     np.testing.assert_allclose(cov, J @ C @ J.T, atol=1e-9)
 
 
-def test_accepts_the_wire_model() -> None:
-    protocol = pytest.importorskip("services.common.protocol")
+def test_the_estimators_model_predicts_the_same_after_the_wire() -> None:
     joint = revolute_joint([0.0, 0.6, 0.8], [0.1, 0.0, 0.6], 0.1)
-    samples = demo(joint, 1.0, duration_s=1.0)
-    b = _run(samples)
-    assert b.revolute is not None
-    wire = protocol.KinematicModel(
-        seq=0, stamp_ns=b.stamp_ns, frame_id=b.frame_id, type=b.type,
-        probabilities=dict(b.probabilities),
-        revolute=protocol.RevoluteParams(axis=np.array(b.revolute.axis),
-                                         point=np.array(b.revolute.point), q=b.revolute.q,
-                                         dq=b.revolute.dq,
-                                         covariance=np.array(b.revolute.covariance)),
-        reference_pose=np.array(b.reference_pose), updates=b.updates)
-    wire = protocol.KinematicModel.from_msgpack(wire.to_msgpack())
+    b = _run(demo(joint, 1.0, duration_s=1.0))
+    assert b.type == "revolute" and b.revolute is not None
+    wire = KinematicModel.from_msgpack(b.to_msgpack())
     a, w = predict_hand_pose(b, b.stamp_ns + 10**7), predict_hand_pose(wire, b.stamp_ns + 10**7)
     assert a is not None and w is not None
-    np.testing.assert_allclose(a[0], w[0], atol=1e-12)
-    np.testing.assert_allclose(a[1], w[1], atol=1e-15)
+    np.testing.assert_array_equal(a[0], w[0])  # the round trip keeps every bit
+    np.testing.assert_array_equal(a[1], w[1])

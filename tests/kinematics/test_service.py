@@ -1,18 +1,33 @@
-"""The kinematics service over a real Zenoh router, as a separate process."""
+"""The kinematics service: node tests on the in-memory bus, then the process over a real router.
+
+The node tests drive a ``KinematicsNode`` through the fake bus and check only what the node
+shows on the wire: the KinematicModel messages it publishes, its ``get`` answer, its ``stats``
+and its ``reset`` answer.
+"""
 
 from __future__ import annotations
 
+import dataclasses
 import json
-import time
 from pathlib import Path
 
 import numpy as np
+import pytest
 
-from services.common.bus import Bus
+from services.common.bus import Bus, QueryRequest
 from services.common.keys import Keys
 from services.common.protocol import Ack, HandBody, KinematicModel, LandmarkStates
 from services.common.se3 import se3_exp, skew
-from tests.conftest import Processes, output_of, wait_until, zenoh_args
+from services.common.service import Service
+from services.kinematics.config import KinematicsConfig
+from services.kinematics.service import KinematicsNode
+from services.synthetic.generator import generate
+from services.synthetic.replay import landmark_messages
+from services.tracker.config import TrackerConfig
+from services.tracker.service import TrackerNode
+from tests.common.fake_bus import FakeBus
+from tests.common.service_harness import ServiceHarness, drain
+from tests.conftest import Processes, output_of, wait_routed, wait_until, zenoh_args
 
 KEYS = Keys("kin")
 AXIS = np.array([0.0, 0.6, 0.8])
@@ -37,10 +52,162 @@ def revolute_bodies(n: int, start: int = 0) -> list[HandBody]:
     return bodies
 
 
-def _start(procs: Processes, router: str, state: Path):  # type: ignore[no-untyped-def]
+def _assert_the_revolute_joint(model: KinematicModel) -> None:
+    assert model.type == "revolute" and model.probabilities["revolute"] > 0.9
+    assert model.revolute is not None
+    assert min(np.linalg.norm(model.revolute.axis - AXIS),
+               np.linalg.norm(model.revolute.axis + AXIS)) < 1e-3
+    assert np.linalg.norm(model.revolute.point - POINT) < 1e-3
+
+
+class FakeKinematics(ServiceHarness):
+    """A kinematics node on the fake bus, with the models it publishes in :attr:`models`."""
+
+    def __init__(self, bus: FakeBus | None = None) -> None:
+        super().__init__("kinematics", KEYS, bus)
+        KinematicsNode(self.service, KinematicsConfig())
+        self.models = self.record(KEYS.kinematics_model, KinematicModel)
+
+    def bodies(self, *bodies: HandBody | bytes) -> None:
+        self.send(KEYS.hand_body, *bodies)
+
+    def query(self, parameters: str = "") -> bytes:
+        selector = KEYS.kinematics_model + (f"?{parameters}" if parameters else "")
+        replies = self.bus.get(selector)
+        assert [key for key, _ in replies] == [KEYS.kinematics_model]
+        return replies[0][1]
+
+    def model(self) -> KinematicModel:
+        return KinematicModel.from_msgpack(self.query())
+
+
+def _same_model(a: KinematicModel, b: KinematicModel) -> bool:
+    """Same content (sequence numbers aside)."""
+    return dataclasses.replace(a, seq=0).to_msgpack() == dataclasses.replace(b, seq=0).to_msgpack()
+
+
+def test_the_model_answers_before_any_data() -> None:
+    node = FakeKinematics()
+    assert node.model().updates == 0
+    as_json = json.loads(node.query("format=json"))
+    assert as_json["updates"] == 0 and as_json["schema"] == "handkse.KinematicModel/1"
+    assert node.models == []
+
+
+def test_bodies_in_models_out_and_the_joint_is_found() -> None:
+    node = FakeKinematics()
+    bodies = revolute_bodies(120)
+    node.bodies(*bodies)
+
+    models = node.models
+    assert [m.updates for m in models] == list(range(1, 121))  # one model per update
+    assert [m.seq for m in models] == list(range(120))
+    assert [m.stamp_ns for m in models] == [b.stamp_ns for b in bodies]
+    _assert_the_revolute_joint(models[-1])
+    assert node.query() == models[-1].to_msgpack()  # get answers the latest model
+    as_json = json.loads(node.query("format=json"))
+    assert as_json["updates"] == 120 and len(as_json["reference_pose"]) == 4
+    assert as_json["type"] == "revolute"
+    stats = node.stats()
+    assert (stats.received, stats.published, stats.rejected) == (120, 120, {})
+    assert "update" in stats.latency_ms
+
+
+def test_bad_bodies_are_counted_and_not_published() -> None:
+    node = FakeKinematics()
+    bodies = revolute_bodies(12)
+    skew_pose = bodies[10].pose.copy()
+    skew_pose[:3, :3] *= 1.1  # not a rotation
+    node.bodies(*bodies[:10])
+    node.bodies(b"\x00garbage")
+    node.bodies(dataclasses.replace(bodies[10], pose=skew_pose))
+    node.bodies(bodies[9])  # again: a duplicate stamp
+    assert len(node.models) == 10
+    node.bodies(*bodies[10:])
+
+    clean = FakeKinematics()
+    clean.bodies(*bodies)
+    assert node.models[-1].updates == 12 and _same_model(node.models[-1], clean.models[-1])
+    stats = node.stats()
+    assert stats.received == 15 and stats.published == 12
+    assert sum(stats.rejected.values()) == 3
+    assert stats.rejected["bad_msgpack"] == 1 and stats.rejected["duplicate_stamp"] == 1
+
+
+def test_each_rejected_body_is_counted_under_its_own_reason() -> None:
+    node = FakeKinematics()
+    bodies = revolute_bodies(10)
+    node.bodies(*bodies, bodies[9], bodies[9], bodies[3])
+    assert node.stats().rejected == {"duplicate_stamp": 2, "out_of_order": 1}
+
+
+def test_a_body_without_a_pose_yet_is_ignored() -> None:
+    node = FakeKinematics()
+    waiting = dataclasses.replace(revolute_bodies(1)[0], initialized=False, pose=np.eye(4))
+    node.bodies(waiting)
+    stats = node.stats()
+    assert (stats.received, stats.published, stats.rejected) == (1, 0, {})
+    assert node.model().updates == 0
+
+
+def test_a_switch_of_frame_starts_a_new_demonstration() -> None:
+    node = FakeKinematics()
+    bodies = revolute_bodies(40)
+    node.bodies(*bodies[:30])
+    node.bodies(*(dataclasses.replace(b, frame_id="world") for b in bodies[30:]))
+
+    assert node.stats().rejected == {"frame_changed": 1}
+    after = node.models[30:]
+    assert [m.frame_id for m in node.models[:30]] == ["camera"] * 30
+    assert [(m.frame_id, m.updates) for m in after] == [("world", i) for i in range(1, 11)]
+    assert node.model().frame_id == "world"
+
+
+def test_reset_starts_a_new_demonstration() -> None:
+    node = FakeKinematics()
+    bodies = revolute_bodies(120)
+    node.bodies(*bodies[:60])
+    ack = node.reset()
+    published_before = len(node.models)
+    node.bodies(*bodies[60:90])
+
+    fresh = FakeKinematics()
+    fresh.bodies(*bodies[60:90])
+    assert ack.ok, ack.message
+    assert all(m.updates <= 30 for m in node.models[published_before:])
+    assert node.model().updates == 30 and _same_model(node.model(), fresh.models[-1])
+
+
+@pytest.mark.parametrize(("name", "joint"), [("valve", "revolute"), ("slider", "prismatic")])
+def test_tracker_and_kinematics_nodes_on_one_bus_find_the_joint(name: str, joint: str) -> None:
+    """The pipeline in one process: landmarks -> tracker node -> kinematics node -> back to the
+    tracker, each service loop run in turn after every frame (as the services would)."""
+    bus = FakeBus()
+    tracker = ServiceHarness("tracker", KEYS, bus)
+    TrackerNode(tracker.service, TrackerConfig())
+    kinematics = FakeKinematics(bus)
+    bodies = tracker.record(KEYS.hand_body, HandBody)
+    frames = landmark_messages(generate(name, 3, 0))
+    for frame in frames:
+        tracker.send(KEYS.hand_landmarks, frame)
+        drain(kinematics.service)
+    drain(tracker.service)  # takes in the last model
+
+    assert tracker.stats().received == len(frames) + len(kinematics.models)
+    assert tracker.stats().rejected == {} and kinematics.stats().rejected == {}
+    assert kinematics.stats().received == len(bodies)
+    final = kinematics.model()
+    assert final.type == joint and final.updates == sum(b.initialized for b in bodies)
+
+
+# --- the service process over a real router ---
+
+
+def _start(procs: Processes, router: str, state: Path, client: Bus):  # type: ignore[no-untyped-def]
     p = procs.start("kinematics", "--rig", KEYS.rig, "--state-file", str(state),
                     *zenoh_args(router), name="kinematics")
-    wait_until(lambda: "kinematics ready" in output_of(p), 20, what="kinematics start")
+    wait_until(lambda: KEYS.alive("kinematics") in client.alive(KEYS.alive_all), 20,
+               what=f"kinematics liveliness; log: {output_of(p)}")
     return p
 
 
@@ -48,52 +215,98 @@ def _model(bus: Bus) -> KinematicModel:
     return KinematicModel.from_msgpack(bus.get(KEYS.kinematics_model)[0][1])
 
 
-def test_model_published_queried_reset_and_restored(procs: Processes, router: str,
-                                                    client_bus: Bus, tmp_path: Path) -> None:
-    state = tmp_path / "kin.state"
-    kin = _start(procs, router, state)
-    wait_until(lambda: KEYS.alive("kinematics") in client_bus.alive(KEYS.alive_all), 20,
-               what="kinematics liveliness")
+def _stats(bus: Bus) -> dict:  # type: ignore[type-arg]
+    return dict(json.loads(bus.get(KEYS.stats("kinematics") + "?format=json")[0][1]))
+
+
+def test_the_process_publishes_answers_and_resets(procs: Processes, router: str,
+                                                  client_bus: Bus, tmp_path: Path) -> None:
     models: list[KinematicModel] = []
     client_bus.subscribe(KEYS.kinematics_model,
                          lambda k, p: models.append(KinematicModel.from_msgpack(p)))
-    time.sleep(0.2)
+    wait_routed(client_bus)  # before the service connects, so it learns the subscription
+    kin = _start(procs, router, tmp_path / "kin.state", client_bus)
     assert _model(client_bus).updates == 0  # answers before any data
 
     bodies = revolute_bodies(120)
     for b in bodies[:60]:
         client_bus.put(KEYS.hand_body, b.to_msgpack())
     client_bus.put(KEYS.hand_body, b"\x00garbage")
-    wait_until(lambda: len(models) >= 60 and models[-1].updates == 60, 20, what="60 updates")
-    assert [m.seq for m in models] == sorted(m.seq for m in models)
+    wait_until(lambda: _stats(client_bus)["received"] == 61, 20, what="61 bodies received")
+    wait_until(lambda: bool(models) and models[-1].updates == 60, 20, what="60 updates")
 
-    queried = _model(client_bus)
-    assert queried.updates == 60
+    node = FakeKinematics()  # the process publishes what the node does, message for message
+    node.bodies(*bodies[:60], b"\x00garbage")
+    assert len(models) == 60 and all(map(_same_model, models, node.models))
+    assert [m.seq for m in models] == list(range(60))
+    assert _same_model(_model(client_bus), models[-1])
     as_json = json.loads(client_bus.get(KEYS.kinematics_model + "?format=json")[0][1])
     assert as_json["updates"] == 60 and as_json["schema"] == "handkse.KinematicModel/1"
-    assert len(as_json["reference_pose"]) == 4
+    stats = _stats(client_bus)
+    assert stats["published"] == 60 and stats["rejected"] == {"bad_msgpack": 1}
+
+    ack = Ack.from_msgpack(client_bus.get(KEYS.reset("kinematics"))[0][1])
+    assert ack.ok, ack.message
+    for b in bodies[60:65]:
+        client_bus.put(KEYS.hand_body, b.to_msgpack())
+    wait_until(lambda: _model(client_bus).updates == 5, 20, what="5 updates after the reset")
+    assert kin.poll() is None
+
+
+def test_a_killed_process_continues_from_its_state_file(procs: Processes, router: str,
+                                                        client_bus: Bus, tmp_path: Path) -> None:
+    state = tmp_path / "kin.state"
+    kin = _start(procs, router, state, client_bus)
+    bodies = revolute_bodies(120)
+    for b in bodies[:60]:
+        client_bus.put(KEYS.hand_body, b.to_msgpack())
+    wait_until(lambda: _model(client_bus).updates == 60, 20, what="60 updates")
 
     # kill -9 mid-demonstration; the restarted service continues from the snapshot
     kin.kill()
     kin.wait(5)
     assert state.exists()
-    _start(procs, router, state)
-    wait_until(lambda: KEYS.alive("kinematics") in client_bus.alive(KEYS.alive_all), 20,
-               what="restarted kinematics")
+    _start(procs, router, state, client_bus)
     assert _model(client_bus).updates == 60
     for b in bodies[60:]:
         client_bus.put(KEYS.hand_body, b.to_msgpack())
     wait_until(lambda: _model(client_bus).updates == 120, 20, what="120 updates")
-    final = _model(client_bus)
-    assert final.type == "revolute" and final.probabilities["revolute"] > 0.9
-    assert final.revolute is not None
-    assert min(np.linalg.norm(final.revolute.axis - AXIS),
-               np.linalg.norm(final.revolute.axis + AXIS)) < 1e-3
-    assert np.linalg.norm(final.revolute.point - POINT) < 1e-3
-
-    stats = json.loads(client_bus.get(KEYS.stats("kinematics") + "?format=json")[0][1])
-    assert stats["received"] == 60 and stats["published"] >= 60
+    _assert_the_revolute_joint(_model(client_bus))
+    stats = _stats(client_bus)
+    assert stats["received"] == 60 and stats["published"] == 60
 
     ack = Ack.from_msgpack(client_bus.get(KEYS.reset("kinematics"))[0][1])
     assert ack.ok
-    assert _model(client_bus).updates == 0
+    empty = _model(client_bus)
+    assert (empty.updates, empty.stamp_ns, empty.type) == (0, 0, "unknown")
+    # the reset published nothing (the Ack comes after the reset ran)
+    after = json.loads(client_bus.get(KEYS.stats("kinematics") + "?format=json")[0][1])
+    assert after["published"] == stats["published"]
+
+
+def _node(bus: Bus) -> tuple[Service, KinematicsNode]:
+    service = Service("kinematics", bus, Keys("kinnode"))
+    return service, KinematicsNode(service, KinematicsConfig())
+
+
+def _answer(node: KinematicsNode) -> KinematicModel:
+    request = QueryRequest(key=node.service.keys.kinematics_model, parameters={}, payload=None)
+    return KinematicModel.from_msgpack(node.answer_model(request).payload)
+
+
+def test_reset_publishes_nothing_until_the_first_body(client_bus: Bus) -> None:
+    """After a reset ``get`` answers the empty model (stamp 0, updates 0); the next model is
+    published for the first body of the new demonstration, stamped with it (docs/protocol.md)."""
+    service, node = _node(client_bus)
+    bodies = revolute_bodies(30)
+    for b in bodies[:10]:
+        node.on_body(b)
+    assert _answer(node).seq == 9
+    node.reset()
+    assert service.published == 10
+    empty = _answer(node)
+    assert (empty.updates, empty.stamp_ns, empty.type, empty.seq) == (0, 0, "unknown", 0)
+    node.on_body(bodies[20])
+    assert service.published == 11
+    first = _answer(node)
+    assert (first.updates, first.stamp_ns, first.seq) == (1, bodies[20].stamp_ns, 10)

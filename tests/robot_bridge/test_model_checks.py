@@ -106,13 +106,12 @@ def test_a_prismatic_model_with_a_huge_covariance_is_refused() -> None:
 def test_the_estimators_models_pass_the_bounds(name: str) -> None:
     """What our pipeline publishes at the end of the robot-trials demonstrations (and the
     demo's key) is within the default bounds, at the robot's grasp."""
-    from services.evaluation.pipeline import run_pipeline
-    from services.kinematics.service import model_message
+    from services.evaluation.robot_trials import PARTICIPANT, estimate
 
     c = RobotBridgeConfig()
     for seed in range(5):
-        demo = generate(name, 3, seed)
-        model = model_message(run_pipeline(demo).final, 0)
+        demo = generate(name, PARTICIPANT, seed)
+        model = estimate("ours", demo)
         assert model.type == "revolute"
         assert model.probabilities["revolute"] >= c.min_type_probability
         grasp = grasp_in_camera(object_in_camera(demo))[:3, 3]

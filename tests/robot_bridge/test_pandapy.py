@@ -8,10 +8,10 @@ import math
 import numpy as np
 import pytest
 
-from services.robot_bridge.backend import make_backend
 from services.robot_bridge.config import RobotBridgeConfig
 from services.robot_bridge.controller import lead_target, quat_xyzw_from_matrix
 from services.robot_bridge.executor import execute
+from services.robot_bridge.factory import make_backend
 from services.robot_bridge.pandapy_backend import PandaPyBackend, pose_from_franka
 from services.robot_bridge.trajectory import ArticulationPlan, JointInBase
 from tests.robot_bridge import fake_panda_py

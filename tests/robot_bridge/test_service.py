@@ -92,9 +92,10 @@ def test_articulate_over_zenoh_and_robot_state(procs: Processes, router: str,
     kinematics.undeclare()
     # ... and falls back to the last model published on the model key
     client_bus.put(KEYS.kinematics_model, _key_model(time.time_ns()).to_msgpack())
-    time.sleep(0.3)
-    dry = _articulate(client_bus, ArticulateRequest(amount=math.pi / 2, duration_s=2.0,
-                                                    dry_run=True))
+    dry_request = ArticulateRequest(amount=math.pi / 2, duration_s=2.0, dry_run=True)
+    wait_until(lambda: _articulate(client_bus, dry_request).reason != "no_model", 10,
+               what="the bridge has the published model")
+    dry = _articulate(client_bus, dry_request)
     assert dry.reason == "dry_run"
     assert np.allclose(states[-1].q, idle.q, atol=1e-9)  # dry runs do not move
 

@@ -1,9 +1,8 @@
-"""Articulating synthetic demonstrations' objects in simulation (demo hook, robot trials)."""
+"""Articulating synthetic demonstrations' objects in simulation (the demo hook)."""
 
 from __future__ import annotations
 
 import math
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -12,7 +11,6 @@ pytest.importorskip("mujoco")
 
 from services.common.protocol import KinematicModel, PrismaticParams, RevoluteParams
 from services.common.se3 import so3_exp
-from services.robot_bridge.config import RobotBridgeConfig
 from services.robot_bridge.simulation import (
     ObjectInCamera,
     articulate_in_simulation,
@@ -20,13 +18,6 @@ from services.robot_bridge.simulation import (
     format_result,
     grasp_in_camera,
     object_in_camera,
-)
-from services.robot_bridge.trials import (
-    demonstrated_extent,
-    model_from_estimate,
-    run_trial,
-    table_markdown,
-    write_report,
 )
 from services.synthetic.generator import generate
 
@@ -101,32 +92,3 @@ def test_refusals_reach_the_demo_result() -> None:
     assert articulate_in_simulation(unsure, obj).result.reason == "low_confidence"
     rigid = KinematicModel(type="rigid", probabilities={**probs, "rigid": 1.0, "revolute": 0.0})
     assert articulate_in_simulation(rigid, obj).result.reason == "unsupported_type"
-
-
-@pytest.mark.parametrize("name", ["window_lock", "flap_latch", "bolt"])
-def test_demonstrated_extent_of_a_baseline_estimate(name: str) -> None:
-    """The opening stroke seen in the landmarks, even when the human turned back afterwards."""
-    demo = generate(name, 3, 0)
-    obj = object_in_camera(demo)
-    points = np.asarray(demo.points, float)
-    for flip in (1.0, -1.0):
-        axis = flip * obj.axis
-        extent = demonstrated_extent(obj.joint_type, axis, obj.point, points)
-        assert 0.5 < extent / (flip * obj.demonstrated) < 1.5
-        model = model_from_estimate(obj.joint_type, axis, obj.point, demo)
-        q = model.revolute.q if model.revolute is not None else model.prismatic.q  # type: ignore[union-attr]
-        assert q == pytest.approx(extent)
-        assert KinematicModel.from_msgpack(model.to_msgpack()) == model
-    assert model_from_estimate("rigid", np.zeros(3), np.zeros(3), demo).type == "rigid"
-
-
-def test_one_trial_and_the_report(tmp_path: Path) -> None:
-    row, trace = run_trial("key", 4, "regal", RobotBridgeConfig())
-    assert row.object == "key" and row.method == "regal" and row.type_est == "revolute"
-    assert len(trace["t_s"]) == len(trace["force_n"]) > 100
-    rows = [row]
-    md = table_markdown(rows, ["regal"], "test")
-    assert "| Regal et al.-style |" in md and ("1/1" in md or "0/1" in md)
-    write_report(rows, {("key", 4, "regal"): trace}, ["regal"], tmp_path, 4, 70.0, "test")
-    for name in ("table.md", "results.csv", "force_key.png"):
-        assert (tmp_path / name).stat().st_size > 0

@@ -27,8 +27,8 @@ from services.common.protocol import (
     RevoluteParams,
 )
 from services.common.service import Service
-from services.robot_bridge.backend import make_backend
 from services.robot_bridge.config import RobotBridgeConfig
+from services.robot_bridge.factory import make_backend
 from services.robot_bridge.mujoco_backend import nominal_grasp_pose
 from services.robot_bridge.safety import check_cached_model
 from services.robot_bridge.service import RobotBridgeNode

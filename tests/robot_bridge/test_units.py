@@ -387,7 +387,7 @@ def test_config_from_args_reads_overrides() -> None:
 
 
 def test_package_imports_without_panda_py() -> None:
-    modules = ["executor", "service", "trials", "pandapy_backend", "backend"]
+    modules = ["executor", "service", "pandapy_backend", "backend", "factory"]
     if importlib.util.find_spec("mujoco") is not None:
         modules += ["simulation", "mujoco_backend"]
     for module in modules:

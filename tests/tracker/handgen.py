@@ -13,9 +13,9 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from services.common.kabsch import weighted_kabsch
 from services.common.se3 import se3_exp, se3_inverse, so3_exp, transform_points
 from services.tracker.config import TrackerConfig
-from services.tracker.ransac import weighted_kabsch
 from services.tracker.tracker import HandBodyEstimate, HandObservation, HandTracker
 
 Array = NDArray[np.float64]

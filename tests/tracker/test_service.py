@@ -1,87 +1,206 @@
-"""The tracker service over a real Zenoh router, as a separate process."""
+"""The tracker service: node tests on the in-memory bus, then the process over a real router.
+
+The node tests drive a ``TrackerNode`` through the fake bus and check only what the node shows on
+the wire: the HandBody messages it publishes, its ``stats`` and its ``reset`` answer.
+"""
 
 from __future__ import annotations
 
 import dataclasses
 import json
-import time
 
 import numpy as np
+import pytest
 
 from services.common.bus import Bus
 from services.common.keys import Keys
-from services.common.protocol import HandBody, KinematicModel
+from services.common.protocol import HandBody, HandLandmarks, KinematicModel
 from services.common.se3 import se3_exp
 from services.synthetic.generator import generate
 from services.synthetic.replay import landmark_messages
 from services.tracker.config import TrackerConfig
-from services.tracker.service import observations
-from services.tracker.tracker import HandTracker
-from tests.conftest import Processes, output_of, wait_until, zenoh_args
+from services.tracker.service import TrackerNode, observations
+from tests.common.service_harness import ServiceHarness
+from tests.conftest import Processes, output_of, wait_routed, wait_until, zenoh_args
 
 KEYS = Keys("trk")
 
 
+class FakeTracker(ServiceHarness):
+    """A tracker node on the fake bus, with the hand bodies it publishes in :attr:`bodies`."""
+
+    def __init__(self) -> None:
+        super().__init__("tracker", KEYS)
+        TrackerNode(self.service, TrackerConfig())
+        self.bodies = self.record(KEYS.hand_body, HandBody)
+
+    def landmarks(self, *messages: HandLandmarks | bytes) -> None:
+        self.send(KEYS.hand_landmarks, *messages)
+
+
+@pytest.fixture(scope="module")
+def valve() -> list[HandLandmarks]:
+    return landmark_messages(generate("valve", 3, 0))
+
+
+def _same_bodies(a: list[HandBody], b: list[HandBody]) -> bool:
+    """Same estimates (sequence numbers aside)."""
+    return len(a) == len(b) and all(
+        x.stamp_ns == y.stamp_ns and x.initialized == y.initialized
+        and np.array_equal(x.pose, y.pose) and np.array_equal(x.covariance, y.covariance)
+        for x, y in zip(a, b, strict=True))
+
+
+def test_every_frame_gives_a_hand_body_with_its_stamp(valve: list[HandLandmarks]) -> None:
+    frames = valve[:60]
+    node = FakeTracker()
+    node.landmarks(*frames)
+
+    bodies = node.bodies
+    stats = node.stats()
+    stamps = [b.stamp_ns for b in bodies]
+    assert stamps == sorted(stamps) and set(stamps) <= {f.stamp_ns for f in frames}  # carried
+    assert len(bodies) + sum(stats.skipped.values()) == len(frames)  # published, or counted
+    assert [b.seq for b in bodies] == list(range(len(bodies)))
+    assert sum(b.initialized for b in bodies) > 40
+    last = bodies[-1]
+    assert last.frame_id == "camera" and np.isfinite(last.pose).all()
+    assert set(np.unique(last.landmarks.status)) <= {0, 1, 2, 3}
+    # state messages (congestion control BLOCK), never dropped like camera frames
+    assert all(not p.frame for p in node.bus.puts if p.key == KEYS.hand_body)
+    assert (stats.received, stats.published, stats.rejected) == (len(frames), len(bodies), {})
+    assert "step" in stats.latency_ms
+
+
+def test_bad_input_is_counted_and_does_not_disturb_tracking(valve: list[HandLandmarks]) -> None:
+    frames = valve[:60]
+    clean = FakeTracker()
+    clean.landmarks(*frames)
+    node = FakeTracker()
+    node.landmarks(*frames[:21])
+    node.landmarks(b"\x81\xa6schema\xc0", frames[0])  # a nil schema, then a frame out of order
+    node.send(KEYS.kinematics_model, b"not a model")
+    node.landmarks(*frames[21:])
+
+    assert _same_bodies(node.bodies, clean.bodies)
+    stats = node.stats()
+    assert stats.received == len(frames) + 3
+    assert stats.rejected == {"bad_field": 1, "out_of_order_stamp": 1, "bad_msgpack": 1}
+    assert stats.published == len(node.bodies)
+
+
+def test_a_frame_without_a_hand_is_skipped_not_published(valve: list[HandLandmarks]) -> None:
+    node = FakeTracker()
+    node.landmarks(*valve[:30])
+    published, skipped = node.stats().published, node.stats().skipped
+    empty = dataclasses.replace(valve[29], stamp_ns=valve[29].stamp_ns + 1, hands=())
+    node.landmarks(empty)
+
+    stats = node.stats()
+    assert stats.published == published and stats.rejected == {}
+    assert stats.skipped == {**skipped, "no_hand": skipped.get("no_hand", 0) + 1}
+    assert node.bodies[-1].stamp_ns == valve[29].stamp_ns
+
+
+def test_a_kinematic_model_is_accepted_and_a_broken_one_counted() -> None:
+    node = FakeTracker()
+    model = KinematicModel(type="unknown", probabilities={"rigid": 0.25, "prismatic": 0.25,
+                                                          "revolute": 0.25,
+                                                          "disconnected": 0.25})
+    node.send(KEYS.kinematics_model, model)
+    assert (node.stats().received, node.stats().rejected) == (1, {})
+    node.send(KEYS.kinematics_model, model.to_msgpack()[:-3])
+    assert node.stats().received == 2 and sum(node.stats().rejected.values()) == 1
+    assert node.bodies == []
+
+
+def test_reset_starts_over_as_a_fresh_tracker(valve: list[HandLandmarks]) -> None:
+    node = FakeTracker()
+    node.landmarks(*valve[:60])
+    before = len(node.bodies)
+    assert node.bodies[-1].initialized
+
+    ack = node.reset()
+    node.landmarks(*valve[60:])
+
+    fresh = FakeTracker()
+    fresh.landmarks(*valve[60:])
+    assert ack.ok, ack.message
+    assert not node.bodies[before].initialized  # the body is acquired again
+    assert _same_bodies(node.bodies[before:], fresh.bodies)
+    assert [b.seq for b in node.bodies] == list(range(len(node.bodies)))  # seq keeps counting
+
+
+def test_world_landmarks_with_a_camera_pose_are_tracked_in_the_world_frame() -> None:
+    """A moving camera: the detector publishes world points with ``T_world_camera``; the tracker
+    gets camera-frame points back plus the pose, so its depth noise follows the real viewing
+    rays, and tracks (and publishes) in "world"."""
+    frames = landmark_messages(generate("key", 3, 0))[:30]
+    T_wc = se3_exp(np.array([0.3, -0.2, 1.0, 0.2, 0.5, -0.1]))
+    moved = [dataclasses.replace(msg, frame_id="world", T_world_camera=T_wc, hands=tuple(
+        dataclasses.replace(h, points=(h.points @ T_wc[:3, :3].T + T_wc[:3, 3]).astype("<f4"))
+        for h in msg.hands)) for msg in frames]
+    for msg, world in zip(frames, moved, strict=True):
+        np.testing.assert_allclose(observations(world)[0].points, msg.hands[0].points, atol=1e-5,
+                                   equal_nan=True)
+    static = observations(dataclasses.replace(frames[0], T_world_camera=T_wc))  # camera frame
+    np.testing.assert_array_equal(static[0].points, frames[0].hands[0].points.astype(float))
+
+    node = FakeTracker()
+    node.landmarks(*moved)
+    assert node.bodies and all(b.frame_id == "world" for b in node.bodies)
+    assert node.bodies[-1].initialized
+    camera = FakeTracker()
+    camera.landmarks(*frames)
+    # The same track seen from the world: the body origin (centroid of the inliers) is the
+    # camera run's moved by T_wc. Both runs see the same points up to the float32 rounding of
+    # world coordinates (~1e-7 m), which 30 frames of filtering grow to ~1e-6 m, not 0.1 mm.
+    assert [b.stamp_ns for b in node.bodies] == [b.stamp_ns for b in camera.bodies]
+    for world, cam in zip(node.bodies, camera.bodies, strict=True):
+        if cam.initialized:
+            assert np.linalg.norm(world.pose[:3, 3] - (T_wc @ cam.pose)[:3, 3]) < 1e-4
+
+
+# --- the service process over a real router ---
+
+
 def test_landmarks_in_hand_body_out_bad_input_counted(procs: Processes, router: str,
-                                                      client_bus: Bus) -> None:
+                                                      client_bus: Bus,
+                                                      valve: list[HandLandmarks]) -> None:
+    bodies: list[HandBody] = []
+    client_bus.subscribe(KEYS.hand_body, lambda k, p: bodies.append(HandBody.from_msgpack(p)))
+    wait_routed(client_bus)  # before the tracker connects, so it learns the subscription
     tracker = procs.start("tracker", "--rig", KEYS.rig, *zenoh_args(router), name="tracker")
     wait_until(lambda: KEYS.alive("tracker") in client_bus.alive(KEYS.alive_all), 20,
                what=f"tracker liveliness; log: {output_of(tracker)}")
-    bodies: list[HandBody] = []
-    client_bus.subscribe(KEYS.hand_body, lambda k, p: bodies.append(HandBody.from_msgpack(p)))
-    time.sleep(0.2)
 
-    frames = landmark_messages(generate("valve", 3, 0))[:60]
+    frames = valve[:60]
     for i, msg in enumerate(frames):
         client_bus.put(KEYS.hand_landmarks, msg.to_msgpack())
         if i == 20:  # bad input in the middle of the stream
             client_bus.put(KEYS.hand_landmarks, b"\x81\xa6schema\xc0")
             client_bus.put(KEYS.hand_landmarks, frames[0].to_msgpack())  # out of order
             client_bus.put(KEYS.kinematics_model, b"not a model")
-    wait_until(lambda: bodies and bodies[-1].stamp_ns == frames[-1].stamp_ns, 20,
+    wait_until(lambda: bool(bodies) and bodies[-1].stamp_ns == frames[-1].stamp_ns, 20,
                what="hand body of the last frame")
     empty = dataclasses.replace(frames[-1], stamp_ns=frames[-1].stamp_ns + 1, hands=())
     client_bus.put(KEYS.hand_landmarks, empty.to_msgpack())  # valid, but no hand: skipped
 
-    stamps = {f.stamp_ns for f in frames}
-    assert all(b.stamp_ns in stamps for b in bodies)  # stamps carried through unchanged
+    # the process publishes what the node does on the fake bus, message for message
+    node = FakeTracker()
+    node.landmarks(*frames, empty)
+    assert _same_bodies(bodies, node.bodies)
     assert [b.seq for b in bodies] == list(range(len(bodies)))
-    assert sum(b.initialized for b in bodies) > 40
-    last = bodies[-1]
-    assert last.frame_id == "camera" and np.isfinite(last.pose).all()
-    assert set(np.unique(last.landmarks.status)) <= {0, 1, 2, 3}
 
     def stats_now() -> dict:  # type: ignore[type-arg]
         return dict(json.loads(client_bus.get(KEYS.stats("tracker") + "?format=json")[0][1]))
 
     wait_until(lambda: stats_now()["received"] == len(frames) + 4, 10, what="all received")
     stats = stats_now()
-    assert stats["skipped"] == {"no_hand": 1}
-    assert stats["rejected"].get("bad_field", 0) + stats["rejected"].get("wrong_schema", 0) >= 1
-    assert stats["rejected"].get("bad_msgpack", 0) >= 1
-    assert stats["rejected"].get("out_of_order_stamp", 0) == 1
+    assert stats["skipped"] == node.stats().skipped and stats["skipped"]["no_hand"] >= 1
+    assert stats["rejected"] == {"bad_field": 1, "bad_msgpack": 1, "out_of_order_stamp": 1}
     assert "step" in stats["latency_ms"]
     assert tracker.poll() is None
-
-
-def test_model_from_kinematics_reaches_the_tracker(procs: Processes, router: str,
-                                                   client_bus: Bus) -> None:
-    """A published KinematicModel is accepted (not rejected) by the tracker."""
-    tracker = procs.start("tracker", "--rig", KEYS.rig, *zenoh_args(router), name="tracker")
-    wait_until(lambda: KEYS.alive("tracker") in client_bus.alive(KEYS.alive_all), 20,
-               what=f"tracker liveliness; log: {output_of(tracker)}")
-    model = KinematicModel(type="unknown", probabilities={"rigid": 0.25, "prismatic": 0.25,
-                                                          "revolute": 0.25,
-                                                          "disconnected": 0.25})
-    client_bus.put(KEYS.kinematics_model, model.to_msgpack())
-
-    def received() -> int:
-        return int(json.loads(client_bus.get(KEYS.stats("tracker") + "?format=json")[0][1])
-                   ["received"])
-
-    wait_until(lambda: received() == 1, 10, what="model received")
-    stats = json.loads(client_bus.get(KEYS.stats("tracker") + "?format=json")[0][1])
-    assert stats["rejected"] == {}
 
 
 def _angle_deg(a: np.ndarray, b: np.ndarray) -> float:
@@ -99,12 +218,10 @@ def test_a_restarted_tracker_continues_its_body_frame(procs: Processes, router: 
     frames = landmark_messages(demo)
     bodies: list[HandBody] = []
     client_bus.subscribe(KEYS.hand_body, lambda k, p: bodies.append(HandBody.from_msgpack(p)))
-    uninterrupted = HandTracker(TrackerConfig())
-    reference = {}
-    for msg in frames:
-        est = uninterrupted.step(msg.stamp_ns, observations(msg))
-        if est is not None and est.initialized:
-            reference[msg.stamp_ns] = est.pose
+    wait_routed(client_bus)  # before any tracker connects
+    uninterrupted = FakeTracker()
+    uninterrupted.landmarks(*frames)
+    reference = {b.stamp_ns: b.pose for b in uninterrupted.bodies if b.initialized}
 
     def run_tracker(part: list, state: str | None) -> dict[int, np.ndarray]:  # type: ignore[type-arg]
         extra = ["--state-file", state] if state else []
@@ -115,7 +232,6 @@ def test_a_restarted_tracker_continues_its_body_frame(procs: Processes, router: 
         bodies.clear()
         for msg in part:
             client_bus.put(KEYS.hand_landmarks, msg.to_msgpack())
-            time.sleep(0.002)
         wait_until(lambda: bool(bodies) and bodies[-1].stamp_ns == part[-1].stamp_ns, 20,
                    what="hand body of the last frame")
         p.kill()
@@ -140,24 +256,3 @@ def test_a_restarted_tracker_continues_its_body_frame(procs: Processes, router: 
     assert offset_deg(first) < 1.0  # the same tracker on the same frames
     assert offset_deg(resumed) < 10.0
     assert offset_deg(fresh) > 5.0 * offset_deg(resumed)
-
-
-def test_world_landmarks_with_a_camera_pose_are_tracked_in_the_world_frame() -> None:
-    """A moving camera: the detector publishes world points with ``T_world_camera``; the tracker
-    gets camera-frame points back plus the pose, so its depth noise follows the real viewing
-    rays, and tracks (and publishes) in "world"."""
-    demo = generate("key", 3, 0)
-    frames = landmark_messages(demo)[:30]
-    T_wc = se3_exp(np.array([0.3, -0.2, 1.0, 0.2, 0.5, -0.1]))
-    tracker = HandTracker(TrackerConfig())
-    for msg in frames:
-        moved = dataclasses.replace(msg, frame_id="world", T_world_camera=T_wc, hands=tuple(
-            dataclasses.replace(h, points=(h.points @ T_wc[:3, :3].T + T_wc[:3, 3]).astype("<f4"))
-            for h in msg.hands))
-        back = observations(moved)
-        np.testing.assert_allclose(back[0].points, msg.hands[0].points, atol=1e-5,
-                                   equal_nan=True)
-        est = tracker.step(moved.stamp_ns, back, T_world_camera=moved.T_world_camera)
-    assert est is not None and est.initialized and est.frame_id == "world"
-    static = observations(dataclasses.replace(frames[0], T_world_camera=T_wc))  # camera frame
-    np.testing.assert_array_equal(static[0].points, frames[0].hands[0].points.astype(float))

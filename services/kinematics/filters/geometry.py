@@ -23,6 +23,7 @@ from services.common.se3 import (  # noqa: F401 - the float kernels, re-exported
     se3_exp_fast,
     se3_inverse_fast,
     se3_log_fast,
+    skew,
     so3_exp_fast,
     so3_left_jacobian_fast,
     so3_log_fast,
@@ -49,12 +50,6 @@ def cross3(a: Array, b: Array) -> Array:
     a0, a1, a2 = a.tolist()
     b0, b1, b2 = b.tolist()
     return np.array([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0])
-
-
-def skew3(v: Array) -> Array:
-    """``[v]x`` (3x3) with ``[v]x @ u == v x u``."""
-    x, y, z = v.tolist()
-    return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
 
 
 def tangent_basis(u: Array) -> Array:
@@ -155,9 +150,9 @@ def revolute_twist_jacobian(u: Array, p: Array, B: Array, q: float) -> Array:
     ``dh/dq = (p x u, u)``; the ``qdot`` column is 0.
     """
     J = np.zeros((6, 7))
-    J[:3, :2] = q * (skew3(p) @ B)
+    J[:3, :2] = q * (skew(p) @ B)
     J[3:, :2] = q * B
-    J[:3, 2:5] = -q * skew3(u)
+    J[:3, 2:5] = -q * skew(u)
     J[:3, 5] = cross3(p, u)
     J[3:, 5] = u
     return J
@@ -171,7 +166,7 @@ def revolute_left_jacobian(u: Array, p: Array, q: float) -> Array:
     ``J_l(h) = [[J_w, [p]x J_w - J_w [p]x], [0, J_w]]`` with ``J_w`` the SO(3) left Jacobian of ``q u``.
     """
     Jw = so3_left_jacobian_fast(q * u)
-    P = skew3(p)
+    P = skew(p)
     J = np.zeros((6, 6))
     J[:3, :3] = Jw
     J[3:, 3:] = Jw

@@ -8,6 +8,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from services.common.se3 import skew
 from services.kinematics.config import KinematicsConfig
 from services.kinematics.filters.geometry import (
     cross3,
@@ -21,7 +22,6 @@ from services.kinematics.filters.geometry import (
     se3_exp_fast,
     se3_inverse_fast,
     se3_log_fast,
-    skew3,
     tangent_basis,
 )
 
@@ -218,7 +218,7 @@ class RevoluteJoint:
         ``e_t = |d_j - that|``. Its rotation is ``R_q R_E``, so
         ``cos e_r = (<R_j, R_E> + sin(q) <R_j, K R_E> + (1 - cos q) <R_j, K^2 R_E> - 1) / 2``.
         """
-        K = skew3(self.u)
+        K = skew(self.u)
         K2 = K @ K
         RE = self.E[:3, :3]
         c0t = RE @ reference_position + self.E[:3, 3]

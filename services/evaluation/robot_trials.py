@@ -117,10 +117,9 @@ def estimate(method: str, demo: object) -> KinematicModel:
     d = demo
     if method == "ours":
         from services.evaluation.pipeline import run_pipeline
-        from services.kinematics.service import model_message
 
-        return model_message(run_pipeline(d).final, 0)  # type: ignore[arg-type]
-    from services.kinematics import baselines
+        return run_pipeline(d).final  # type: ignore[arg-type]
+    from services.evaluation import baselines
 
     stream = (d.stamps_ns, d.points, d.visibility)  # type: ignore[attr-defined]
     if method == "regal":
@@ -317,7 +316,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 if __name__ == "__main__":
     import logging
 
-    parser = argparse.ArgumentParser(prog="python -m services.robot_bridge.trials",
+    parser = argparse.ArgumentParser(prog="python -m services.evaluation.robot_trials",
                                      description=__doc__.splitlines()[0])
     parser.add_argument("--config", metavar="FILE")
     parser.add_argument("--set", action="append", default=[], dest="overrides",

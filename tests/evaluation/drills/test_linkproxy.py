@@ -9,7 +9,7 @@ from collections.abc import Iterator
 
 import pytest
 
-from services.common.linkproxy import LinkProxy
+from services.evaluation.drills.linkproxy import LinkProxy
 
 
 @pytest.fixture

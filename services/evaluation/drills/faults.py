@@ -3,7 +3,7 @@ and measure how it recovers (issue 8). Used by ``tests/deploy/test_faults.py`` a
 ``bench/faults.py``.
 
 :class:`FaultRig` starts, on TCP loopback, a router, the tracker and the kinematics service (the
-"CPU host") connected to the router *through* a :class:`~services.common.linkproxy.LinkProxy`
+"CPU host") connected to the router *through* a :class:`~services.evaluation.drills.linkproxy.LinkProxy`
 (the link that :meth:`FaultRig.inject` can cut), and a robot bridge (MuJoCo, dry runs only)
 plus this process's observer session connected directly. Every session, the router's included,
 has a lease of ``lease_ms`` (2 s), as in the deployment. The tracker and the kinematics service
@@ -30,11 +30,11 @@ from pathlib import Path
 
 from services.common.bus import Bus, BusError, ZenohOptions
 from services.common.keys import Keys
-from services.common.linkproxy import LinkProxy
 from services.common.processes import ProcessGroup, client_args, free_tcp_endpoint, wait_for
 from services.common.protocol import ArticulateRequest, ArticulateResult, KinematicModel
 from services.common.recording import RecordedMessage
-from services.demo import demo_tangent_error_deg
+from services.evaluation.drills.linkproxy import LinkProxy
+from services.evaluation.pipeline import demo_tangent_error_deg
 from services.synthetic.generator import Demonstration
 from services.synthetic.replay import demonstration_recording
 
@@ -287,9 +287,8 @@ class FaultRig:
         """Reset the tracker and the kinematics service; clear what the observer recorded."""
         for service in BEHIND_LINK:
             self.observer.get(self.keys.reset(service), timeout=5.0)
-        # the kinematics service publishes its reset belief: wait for it, then start clean
-        wait_for(lambda: (m := self.last_model()) is not None and m[1].updates == 0, timeout,
-                 "the reset model")
+        # a reset publishes nothing: let models published before it drain, then start clean
+        self.wait_settled(quiet_s=0.3, timeout=timeout)
         with self._lock:
             self.models.clear()
             self.body_times.clear()

@@ -2,7 +2,7 @@
 
 Both take the same input as our estimator: the detector's landmark stream of one demonstration,
 ``stamps_ns`` (N,) int64, ``points`` (N, 21, 3) [m] in the camera frame (NaN without depth) and
-``visibility`` (N, 21), and return a :class:`~services.kinematics.metrics.JointEstimate` in the
+``visibility`` (N, 21), and return a :class:`~services.evaluation.metrics.JointEstimate` in the
 camera frame. Sources: the published descriptions, summarised in docs/evaluation.md#baselines; no
 code of either project was used.
 
@@ -56,8 +56,9 @@ from numpy.typing import NDArray
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
-from services.common.se3 import se3_inverse, se3_log
-from services.kinematics.metrics import JointEstimate, closest_point_to_origin
+from services.common.kabsch import weighted_kabsch
+from services.common.se3 import se3_inverse, se3_log, so3_exp
+from services.evaluation.metrics import JointEstimate, closest_point_to_origin
 
 Array = NDArray[np.float64]
 
@@ -346,18 +347,6 @@ N_CHORD_DRAWS = 100
 CANDIDATES = ("revolute", "revolute3d", "prismatic")
 
 
-def kabsch_weighted(src: Array, dst: Array, w: Array) -> tuple[Array, Array]:
-    """Rotation R (3, 3) and translation t (3,) minimising ``sum w |R src + t - dst|^2``."""
-    ws = w / w.sum()
-    cs = ws @ src
-    cd = ws @ dst
-    H = (src - cs).T @ ((dst - cd) * ws[:, None])
-    U, _, Vt = np.linalg.svd(H)
-    D = np.diag([1.0, 1.0, float(np.sign(np.linalg.det(Vt.T @ U.T))) or 1.0])
-    R = Vt.T @ D @ U.T
-    return R, cd - R @ cs
-
-
 @dataclass(frozen=True, eq=False)
 class HandPoses:
     """Per-frame hand poses ``T_camera_hand`` (M, 4, 4) and their frame indices (M,)."""
@@ -391,25 +380,13 @@ def hand_poses_kabsch(points: NDArray[np.floating], visibility: NDArray[np.float
         if both.sum() < min_landmarks:
             continue
         w = vis[ref, both] * vis[k, both]
-        R, t = kabsch_weighted(pts[ref, both], pts[k, both], w)
+        R, t = weighted_kabsch(pts[ref, both], pts[k, both], w)
         T = np.eye(4)
         T[:3, :3] = R
         T[:3, 3] = R @ origin + t
         poses.append(T)
         idx.append(k)
     return HandPoses(poses=np.stack(poses), frame_index=np.asarray(idx, dtype=np.int64))
-
-
-def _rodrigues(axis: Array, angles: Array) -> Array:
-    """Rotations (..., 3, 3) about unit ``axis`` (..., 3) by ``angles`` (...)."""
-    a = np.asarray(axis, dtype=float)
-    K = np.zeros((*a.shape[:-1], 3, 3))
-    K[..., 0, 1], K[..., 0, 2] = -a[..., 2], a[..., 1]
-    K[..., 1, 0], K[..., 1, 2] = a[..., 2], -a[..., 0]
-    K[..., 2, 0], K[..., 2, 1] = -a[..., 1], a[..., 0]
-    s = np.sin(angles)[..., None, None]
-    c = np.cos(angles)[..., None, None]
-    return np.eye(3) + s * K + (1.0 - c) * (K @ K)
 
 
 def _orientation_cost(R: Array, R_hat: Array) -> Array:
@@ -492,7 +469,7 @@ def _revolute_candidate(p: Array, R: Array, faithful: bool) -> tuple[JointEstima
             ang = np.broadcast_to(k_idx * FAITHFUL_STEP_REVOLUTE_RAD, (len(a), n))
         else:
             ang = _twist_angles(quats, a)
-        Rk = _rodrigues(a[:, None, :], ang)                               # (c, n, 3, 3)
+        Rk = so3_exp(a[:, None, :] * ang[..., None])                      # (c, n, 3, 3)
         p_hat = np.einsum("cnij,cj->cni", Rk, p[0] - q) + q[:, None, :]
         R_hat = Rk @ R[0]
         sc = _rollout_score(p[None], R[None], p_hat, R_hat)
@@ -530,7 +507,7 @@ def _revolute3d_candidate(p: Array, R: Array, faithful: bool,
         ax = ax / nrm
         ang = (np.arange(n) * FAITHFUL_STEP_REVOLUTE3D_RAD if faithful
                else _position_angles(p, c, ax))
-        Rk = _rodrigues(np.broadcast_to(ax, (n, 3)), ang)
+        Rk = so3_exp(ax * ang[:, None])
         p_hat = np.einsum("nij,nj->ni", Rk, np.broadcast_to(p[0] - c, (n, 3))) + c
         sc = float(_rollout_score(p, R, p_hat, R_fixed))
         if sc < best:

@@ -7,21 +7,21 @@ import math
 import numpy as np
 import pytest
 
+from services.common.kabsch import weighted_kabsch
 from services.common.se3 import so3_exp, transform_points
-from services.kinematics.baselines import (
+from services.evaluation.baselines import (
     CANDIDATES,
     filter_landmarks,
     fit_circle,
     fit_line,
     hand_poses_kabsch,
-    kabsch_weighted,
     regal_style,
     regal_style_fit,
     regal_style_from_trajectory,
     screwmimic_style,
     screwmimic_style_fit,
 )
-from services.kinematics.metrics import (
+from services.evaluation.metrics import (
     JointEstimate,
     axis_angle_error,
     axis_line_distance,
@@ -153,7 +153,7 @@ def test_kabsch_and_hand_poses_are_exact() -> None:
     src = rng.normal(size=(21, 3)) * 0.05
     R = so3_exp(np.array([0.3, -0.2, 1.1]))
     t = np.array([0.1, 0.2, 0.6])
-    R_est, t_est = kabsch_weighted(src, src @ R.T + t, rng.uniform(0.2, 1.0, 21))
+    R_est, t_est = weighted_kabsch(src, src @ R.T + t, rng.uniform(0.2, 1.0, 21))
     np.testing.assert_allclose(R_est, R, atol=1e-12)
     np.testing.assert_allclose(t_est, t, atol=1e-12)
     pts = np.stack([src, src @ R.T + t])

@@ -10,7 +10,7 @@ from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
 from services.common.se3 import se3_exp
-from services.kinematics.metrics import (
+from services.evaluation.metrics import (
     JointEstimate,
     axis_angle_error,
     axis_line_distance,

@@ -1,0 +1,1 @@
+"""``handkse view`` and ``handkse export``: the pipeline in Rerun, and recordings Foxglove can show."""
