@@ -79,22 +79,37 @@ class Execution:
     trace: Trace
 
 
-def _articulated(plan: ArticulationPlan, state: BackendState, part_from_start: Array | None,
-                 previous: float) -> float:
+class _Progress:
     """Joint progress made by this request, signed like the plan (rad or m).
 
-    One formula on every backend: :meth:`ArticulationPlan.progress_from_pose` of a pose
-    relative to the plan's grasp pose, the TCP at this request's start, about / along the
-    request's axis. A real robot measures its TCP. Where the backend sees the object's
-    grasped part (simulation), the TCP's start pose is carried along by the part's own motion
-    since the start (``part_from_start`` is ``T_base_part(start)^-1``), so what counts is how
-    far the object moved, not the arm, and a joint left turned by an earlier request counts
-    nothing.
+    One formula on every backend: :meth:`ArticulationPlan.progress_from_motion` of the grasp's
+    motion since this request's start (the plan's grasp pose), about / along the request's
+    axis. A real robot measures its TCP. Where the backend sees the object's grasped part
+    (simulation; ``start.object_pose``), the grasp is carried along by the part's own motion
+    instead, so what counts is how far the object moved, not the arm, and a joint left turned
+    by an earlier request counts nothing.
     """
-    if part_from_start is not None and state.object_pose is not None:
-        moved = state.object_pose @ part_from_start @ plan.T_base_grasp
-        return plan.progress_from_pose(moved, previous)
-    return plan.progress_from_pose(state.T_base_ee, previous)
+
+    def __init__(self, plan: ArticulationPlan, start: BackendState) -> None:
+        self.plan = plan
+        part = start.object_pose
+        self._part_R0_T = None if part is None else part[:3, :3].T.copy()
+        self._part_p0 = None if part is None else part[:3, 3].copy()
+        self._revolute = plan.joint.joint_type == "revolute"
+
+    def __call__(self, state: BackendState, previous: float) -> float:
+        plan, part = self.plan, state.object_pose
+        if self._part_R0_T is None or self._part_p0 is None or part is None:
+            return plan.progress_from_pose(state.T_base_ee, previous)
+        R_moved = part[:3, :3] @ self._part_R0_T
+        if self._revolute:  # only the rotation counts
+            return plan.progress_from_motion(R_moved, _NO_DISPLACEMENT, previous)
+        grasp = plan.T_base_grasp[:3, 3]
+        return plan.progress_from_motion(R_moved, R_moved @ (grasp - self._part_p0)
+                                         + part[:3, 3] - grasp, previous)
+
+
+_NO_DISPLACEMENT = np.zeros(3)
 
 
 def execute(backend: RobotBackend, plan: ArticulationPlan, config: RobotBridgeConfig, *,
@@ -104,7 +119,7 @@ def execute(backend: RobotBackend, plan: ArticulationPlan, config: RobotBridgeCo
 
     ``on_tick(state, articulating)`` runs after every control tick (publishing, pacing).
     Success: no abort and at least ``(1 - success_tolerance) |amount|`` reached by this
-    request, in the direction of ``amount`` (:func:`_articulated`).
+    request, in the direction of ``amount`` (:class:`_Progress`).
     """
     force_limit = config.force_limit_n if force_limit_n is None else min(force_limit_n,
                                                                           config.force_limit_n)
@@ -122,7 +137,7 @@ def execute(backend: RobotBackend, plan: ArticulationPlan, config: RobotBridgeCo
     n_f = 0
     s = backend.read()
     t0 = s.t_s
-    part_from_start = None if s.object_pose is None else se3_inverse(s.object_pose)
+    progress_made = _Progress(plan, s)
     progress = 0.0
     taus: list[Array] = [s.tau]
     dqs: list[Array] = []
@@ -145,7 +160,7 @@ def execute(backend: RobotBackend, plan: ArticulationPlan, config: RobotBridgeCo
         s = backend.read()
         f = math.sqrt(float(s.wrench[0] ** 2 + s.wrench[1] ** 2 + s.wrench[2] ** 2))
         tq = math.sqrt(float(s.wrench[3] ** 2 + s.wrench[4] ** 2 + s.wrench[5] ** 2))
-        articulated = _articulated(plan, s, part_from_start, articulated)
+        articulated = progress_made(s, articulated)
         if moving:
             peak_f, peak_t = max(peak_f, f), max(peak_t, tq)
             sum_f += f

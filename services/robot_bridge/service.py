@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import math
 import queue
 import threading
 import time
@@ -102,6 +103,7 @@ class RobotBridgeNode:
         self._lock = threading.Lock()
         self._jobs: queue.Queue[_Job] = queue.Queue()
         self._job: _Job | None = None  # the request being served (under _lock)
+        self._refusal_logged: dict[str, float] = {}  # reason -> monotonic time of its last log
         self._next_publish = 0.0
         self._pace: tuple[float, float] | None = None  # (wall start, backend start time)
         keys = service.keys
@@ -159,14 +161,25 @@ class RobotBridgeNode:
         return job.answer
 
     def _refused(self, refusal: Refusal) -> ArticulateResult:
-        """The result of a refused request, counted in ``skipped`` by reason and logged."""
-        self._count(refusal.reason)
-        return _refusal(refusal.reason, refusal.detail)
+        """The result of a refused request, counted in ``skipped`` by reason and logged (at
+        most once a second per reason, with the count: a flood of requests cannot flood the
+        log)."""
+        count, due = self._count(refusal.reason)
+        if due:
+            log.warning("articulate refused: %s (%s; %d so far)", refusal.reason,
+                        refusal.detail, count)
+        return _refusal(refusal.reason)
 
-    def _count(self, reason: str) -> None:
+    def _count(self, reason: str) -> tuple[int, bool]:
+        """Count a refusal; (the count so far, whether a log line is due)."""
         with self._lock:
             skipped = self.service.skipped
-            skipped[reason] = skipped.get(reason, 0) + 1
+            count = skipped[reason] = skipped.get(reason, 0) + 1
+            now = time.monotonic()
+            due = now - self._refusal_logged.get(reason, -math.inf) >= 1.0
+            if due:
+                self._refusal_logged[reason] = now
+        return count, due
 
     # --- robot thread ---
 
@@ -191,10 +204,10 @@ class RobotBridgeNode:
     def _serve(self, job: _Job, stop: threading.Event) -> None:
         try:
             result = self._execute(job, stop)
-        except Exception as exc:  # reported to the caller; the service keeps running
+        except Exception:  # reported to the caller; the service keeps running
             log.exception("articulation failed")
             self.mode = "fault"
-            result = _refusal("robot_error", f"{exc}")
+            result = _refusal("robot_error")
         self._finish(job, result)
 
     def _finish(self, job: _Job, result: ArticulateResult) -> None:
@@ -206,6 +219,8 @@ class RobotBridgeNode:
 
     def _execute(self, job: _Job, stop: threading.Event) -> ArticulateResult:
         request = job.request
+        # The deadline is checked last (the gate), so that a request is told first what is
+        # wrong with it or its model; a caller gone meanwhile costs at most the model query.
         model = request.model or self._model_from_service()
         if isinstance(model, Refusal):
             return self._refused(model)
@@ -214,7 +229,7 @@ class RobotBridgeNode:
                                         on_tick=self._on_tick, cancel=stop,
                                         gate=lambda plan: self._check_deadline(job, plan))
         if not result.success and self.bridge.last_execution is None:
-            self._count(result.reason)  # refused by a check: nothing moved
+            self._count(result.reason)  # refused by a check (logged by the bridge): nothing moved
         self.mode = "fault" if result.reason == "robot_error" else "idle"
         log.info("articulate: success=%s reason=%s articulated=%.4f peak %.1f N mean %.1f N",
                  result.success, result.reason, result.articulated, result.peak_force_n,
@@ -322,9 +337,7 @@ def _rigid(T: np.ndarray) -> np.ndarray:
     return out
 
 
-def _refusal(reason: str, detail: str = "") -> ArticulateResult:
-    if detail:
-        log.warning("articulate refused: %s (%s)", reason, detail)
+def _refusal(reason: str) -> ArticulateResult:
     return ArticulateResult(success=False, reason=reason, articulated=0.0, peak_force_n=0.0,
                             mean_force_n=0.0, duration_s=0.0)
 

@@ -47,6 +47,7 @@ from services.robot_bridge.trajectory import (
     joint_in_base,
     min_jerk,
     plan_checks,
+    twist_angle,
 )
 
 TAU_MAX = np.array([87.0] * 4 + [12.0] * 3)
@@ -193,6 +194,26 @@ def test_progress_unwraps_beyond_half_a_turn() -> None:
         T = _pose(so3_exp(theta * axis), np.zeros(3))
         prev = plan.progress_from_pose(T, prev)
         assert prev == pytest.approx(theta, abs=1e-9)
+
+
+def test_twist_angle_is_the_swing_twist_angle() -> None:
+    """Against the quaternion form ``2 atan2(v . a, w)`` (w >= 0), at every Shepperd branch
+    and at half turns."""
+    rotations = [so3_exp(RNG.normal(size=3)) for _ in range(200)]
+    rotations += [so3_exp(math.pi * np.eye(3)[i]) for i in range(3)]
+    rotations += [so3_exp((math.pi - 1e-9) * np.array([0.0, 0.6, 0.8]))]
+    for R in rotations:
+        a = RNG.normal(size=3)
+        a /= np.linalg.norm(a)
+        q = quat_wxyz_from_matrix(R)
+        expected = 2.0 * math.atan2(float(q[1:] @ a), float(q[0]))
+        got = twist_angle(R, a)
+        assert abs(math.remainder(got - expected, 2.0 * math.pi)) < 1e-9
+    axis = np.array([0.0, 0.6, 0.8])
+    for theta in (0.3, -2.0, 3.0):
+        assert twist_angle(so3_exp(theta * axis), axis) == pytest.approx(theta, abs=1e-12)
+    # a swing about a perpendicular axis adds no twist
+    assert twist_angle(so3_exp(0.7 * np.array([1.0, 0.0, 0.0])), axis) == pytest.approx(0.0)
 
 
 def test_joint_in_base_moves_the_model_through_the_hand_eye() -> None:
