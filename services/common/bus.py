@@ -20,6 +20,7 @@ import re
 import threading
 import time
 from collections.abc import Callable, Sequence
+from concurrent.futures import Future
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -247,7 +248,9 @@ class QueryAnswer:
     encoding: str = MSGPACK
 
 
-QueryHandler = Callable[[QueryRequest], QueryAnswer]
+# A handler answers at once, or hands back a Future that another thread completes later (a
+# deferred answer: the query stays open and the next query is handled meanwhile).
+QueryHandler = Callable[[QueryRequest], "QueryAnswer | Future[QueryAnswer]"]
 
 
 @dataclass(frozen=True)
@@ -387,11 +390,18 @@ class Bus:
     def declare_queryable(self, key: str, handler: QueryHandler) -> Any:
         """Answer queries on ``key`` with ``handler``; every query is finalised.
 
+        Zenoh hands one queryable's queries to its callback one after the other, so a handler
+        that waits holds up every later query. A handler that needs long (an articulation)
+        returns a ``concurrent.futures.Future`` instead: the query stays open and is answered
+        and finalised when another thread completes the future (with a ``QueryAnswer``, or an
+        exception), while later queries are handled at once.
+
         ``QueryRejected`` becomes an error reply with its message; any other exception is logged
         and answered as ``internal error``.
         """
 
         def on_query(query: zenoh.Query) -> None:
+            deferred = False
             try:
                 params = {k: v for k, v in _parameters(query.parameters).items()}
                 payload = query.payload.to_bytes() if query.payload is not None else None
@@ -399,16 +409,17 @@ class Bus:
                                        payload=payload)
                 try:
                     answer = handler(request)
-                except QueryRejected as exc:
-                    query.reply_err(str(exc).encode())
-                    return
                 except Exception as exc:
-                    _failures.exception(f"queryable {key} failed", repr(exc))
-                    query.reply_err(f"internal error: {type(exc).__name__}".encode())
+                    _reply_failure(query, key, exc)
+                    return
+                if isinstance(answer, Future):
+                    deferred = True
+                    answer.add_done_callback(lambda done: _reply_later(query, key, done))
                     return
                 query.reply(key, answer.payload, encoding=zenoh.Encoding(answer.encoding))
             finally:
-                query.drop()
+                if not deferred:
+                    query.drop()
 
         return self._keep(self.session.declare_queryable(key, _guarded(key, on_query)))
 
@@ -476,6 +487,28 @@ def _successful(selector: str, replies: Any, timeout: float) -> list[Reply]:
         raise BusError(f"get {selector!r} failed: {'; '.join(errors)}")
     raise NoResponder(f"get {selector!r}: nothing answers on this key (is the service "
                       "running and connected to the same zenoh network?)")
+def _reply_failure(query: zenoh.Query, key: str, exc: BaseException) -> None:
+    """The error reply for a handler's exception (``QueryRejected``: its message)."""
+    if isinstance(exc, QueryRejected):
+        query.reply_err(str(exc).encode())
+        return
+    _failures.exception(f"queryable {key} failed", repr(exc))
+    query.reply_err(f"internal error: {type(exc).__name__}".encode())
+
+
+def _reply_later(query: zenoh.Query, key: str, done: Future[QueryAnswer]) -> None:
+    """Answer and finalise a deferred query (runs in the thread that completed ``done``)."""
+    try:
+        exc = done.exception() if not done.cancelled() else QueryRejected("query cancelled")
+        if exc is not None:
+            _reply_failure(query, key, exc)
+        else:
+            answer = done.result()
+            query.reply(key, answer.payload, encoding=zenoh.Encoding(answer.encoding))
+    except Exception as exc:  # the session closed meanwhile: nobody to answer
+        _failures.exception(f"deferred reply on {key} failed", repr(exc))
+    finally:
+        query.drop()
 
 
 def _parameters(params: Any) -> dict[str, str]:

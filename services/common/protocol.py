@@ -766,7 +766,11 @@ class RobotState(Message):
 
 @dataclass(frozen=True, kw_only=True, eq=False)
 class ArticulateRequest(Message):
-    """Ask the robot bridge to articulate: ``amount`` rad (revolute) or m (prismatic)."""
+    """Ask the robot bridge to articulate: ``amount`` rad (revolute) or m (prismatic).
+
+    ``timeout_s`` (optional): how long the caller waits for the result (its query timeout); the
+    bridge starts nothing it could not answer within it (docs/protocol.md).
+    """
 
     SCHEMA: ClassVar[str] = "handkse.ArticulateRequest/1"
     amount: float
@@ -774,22 +778,27 @@ class ArticulateRequest(Message):
     force_limit_n: float = 70.0
     model: KinematicModel | None = None
     dry_run: bool = False
+    timeout_s: float | None = None
 
     def _fields(self) -> dict[str, Any]:
         d: dict[str, Any] = {"amount": self.amount, "duration_s": self.duration_s,
                              "force_limit_n": self.force_limit_n, "dry_run": self.dry_run}
         if self.model is not None:
             d["model"] = self.model.to_dict()
+        if self.timeout_s is not None:
+            d["timeout_s"] = self.timeout_s
         return d
 
     @classmethod
     def _parse(cls, f: _Fields, envelope: dict[str, Any]) -> ArticulateRequest:
         raw = f.obj.get("model")
         model = None if raw is None else KinematicModel.from_obj(raw, f"{f.path}.model")
+        timeout = (None if f.obj.get("timeout_s") is None
+                   else f.float("timeout_s", 1e-3, 86400.0))
         return cls(**envelope, amount=f.float("amount"),
                    duration_s=f.float("duration_s", 1e-3, 3600.0),
                    force_limit_n=f.float("force_limit_n", 1e-3, 1e4, default=70.0),
-                   model=model, dry_run=f.bool("dry_run", default=False))
+                   model=model, dry_run=f.bool("dry_run", default=False), timeout_s=timeout)
 
 
 @dataclass(frozen=True, kw_only=True, eq=False)

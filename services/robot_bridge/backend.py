@@ -34,8 +34,9 @@ class BackendState:
     ``wrench`` (6,) external force (N) then torque (N m, about the TCP) acting on the end-effector,
     with the offset captured by ``zero_wrench()`` removed; ``tau`` (7,) joint torque last sent
     (N m, including gravity in simulation); ``saturated`` whether that command was clamped at a
-    torque limit; ``object_joint`` the articulated object's joint value (rad or m) where the
-    backend can measure it (simulation), else None.
+    torque limit; ``object_joint`` the articulated object's joint value (rad or m) and
+    ``object_pose`` the 4x4 pose ``T_base_part`` of its grasped part, where the backend can
+    measure them (simulation), else None.
     """
 
     t_s: float
@@ -46,6 +47,7 @@ class BackendState:
     tau: Array
     saturated: bool
     object_joint: float | None = None
+    object_pose: Array | None = None
 
 
 class RobotBackend(Protocol):

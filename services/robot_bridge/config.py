@@ -31,12 +31,20 @@ class RobotBridgeConfig:
     # --- Backend ---
     backend: str = "mujoco"               # "mujoco" (simulation) or "panda" (panda-python)
     robot_host: str = ""                  # Panda's address (backend "panda")
-    # Hand-eye calibration: pose of the camera in the robot base frame, 16 numbers, row-major.
-    # The kinematic model's frame ("camera", or "world" for a static camera) maps through it.
+    # Calibrations, 16 numbers, row-major: the pose of each frame a kinematic model may be given
+    # in (its frame_id) in the robot base frame. "camera": the hand-eye calibration of a static
+    # camera; "world": the frame of a moving camera's poses T_world_camera. Empty: not
+    # calibrated, and a model in that frame is refused (uncalibrated_frame).
     T_base_camera: tuple[float, ...] = _IDENTITY
+    T_base_world: tuple[float, ...] = ()
 
     # --- Model checks (refused with a reason) ---
     min_type_probability: float = 0.8     # P(type) of the model's type must reach this
+    # Bounds on the model's own 1-sigma uncertainty (uncertain_model beyond them; see
+    # docs/robot_bridge.md#model-uncertainty): the axis direction (both types), and for a
+    # revolute joint the position of its axis at the grasp, perpendicular to the axis.
+    max_axis_direction_std_deg: float = 5.0
+    max_axis_position_std_m: float = 0.01
     max_model_age_s: float = 120.0        # model stamp_ns must be at most this old (wall clock)
     model_query_timeout_s: float = 2.0    # get on the kinematics service when no model is given
     # When that get fails (service down, link cut), the last model received from the service is
@@ -71,6 +79,9 @@ class RobotBridgeConfig:
 
     # --- Service ---
     state_rate_hz: float = 100.0          # RobotState publication rate (wall clock)
+    # How long a caller that sends no ArticulateRequest.timeout_s is taken to wait for the
+    # result (Zenoh's default query timeout); nothing starts that could not end within it.
+    request_timeout_s: float = 10.0
 
     # --- Simulation (backend "mujoco") ---
     sim_object: str = "key"               # "key", "window_lock" or "bolt" at the grasp pose
@@ -95,7 +106,9 @@ class RobotBridgeConfig:
             v = getattr(self, f.name)
             if isinstance(v, float) and not math.isfinite(v):
                 raise ValueError(f"{f.name} must be finite, got {v!r}")
-        positive = ("min_type_probability", "max_model_age_s", "model_query_timeout_s",
+        positive = ("min_type_probability", "max_axis_direction_std_deg",
+                    "max_axis_position_std_m", "request_timeout_s", "max_model_age_s",
+                    "model_query_timeout_s",
                     "force_limit_n", "wrist_torque_limit_nm", "tracking_error_limit_m",
                     "tracking_error_limit_rad", "saturation_abort_s", "max_linear_speed_m_per_s",
                     "max_angular_speed_rad_per_s", "translational_stiffness_n_per_m",
@@ -124,21 +137,34 @@ class RobotBridgeConfig:
             raise ValueError(f"reflex_force_threshold_n ({self.reflex_force_threshold_n}) must "
                              f"exceed force_limit_n ({self.force_limit_n}) so the software "
                              "abort acts first")
-        T = np.asarray(self.T_base_camera, float)
-        if T.shape != (16,):
-            raise ValueError(f"T_base_camera needs 16 numbers (row-major 4x4), got {T.size}")
-        if (problem := check_pose(T.reshape(4, 4))) is not None:
-            raise ValueError(f"T_base_camera is not a rigid transform: {problem}")
+        _check_calibration("T_base_camera", self.T_base_camera, required=True)
+        _check_calibration("T_base_world", self.T_base_world, required=False)
 
     def base_T_camera(self) -> NDArray[np.float64]:
         """``T_base_camera`` as a 4x4 array."""
         return np.asarray(self.T_base_camera, float).reshape(4, 4)
+
+    def base_T_frame(self, frame_id: str) -> NDArray[np.float64] | None:
+        """``T_base_{frame_id}`` (4x4) for a model's ``frame_id``; None when not calibrated."""
+        values = {"camera": self.T_base_camera, "world": self.T_base_world}.get(frame_id, ())
+        return np.asarray(values, float).reshape(4, 4) if values else None
 
     def gains(self) -> ImpedanceGains:
         return ImpedanceGains(translational_n_per_m=self.translational_stiffness_n_per_m,
                               rotational_nm_per_rad=self.rotational_stiffness_nm_per_rad,
                               damping_ratio=self.damping_ratio,
                               nullspace_nm_per_rad=self.nullspace_stiffness_nm_per_rad)
+
+
+def _check_calibration(name: str, values: tuple[float, ...], required: bool) -> None:
+    """A calibration is 16 numbers (row-major 4x4) of a rigid transform, or empty if optional."""
+    if not values and not required:
+        return
+    T = np.asarray(values, float)
+    if T.shape != (16,):
+        raise ValueError(f"{name} needs 16 numbers (row-major 4x4), got {T.size}")
+    if (problem := check_pose(T.reshape(4, 4))) is not None:
+        raise ValueError(f"{name} is not a rigid transform: {problem}")
 
 
 SECTION = "robot_bridge"

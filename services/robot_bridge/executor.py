@@ -20,6 +20,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from services.common.protocol import ArticulateRequest, ArticulateResult, KinematicModel
+from services.common.se3 import se3_inverse
 from services.robot_bridge.backend import BackendError, BackendState, RobotBackend
 from services.robot_bridge.config import RobotBridgeConfig
 from services.robot_bridge.panda_scene import Q_MAX_RAD, Q_MIN_RAD, TAU_MAX_NM
@@ -28,6 +29,7 @@ from services.robot_bridge.safety import (
     SaturationWatch,
     check_amount,
     check_model,
+    check_uncertainty,
     tracking_violation,
     wrench_violation,
 )
@@ -37,6 +39,9 @@ log = logging.getLogger(__name__)
 
 Array = NDArray[np.float64]
 Tick = Callable[[BackendState, bool], None]
+# Called with the checked plan just before it would start (or a dry run answer): a refusal
+# stops it (the service's check of the caller's deadline).
+StartGate = Callable[[ArticulationPlan], Refusal | None]
 _INV_TAU_MAX = 1.0 / TAU_MAX_NM
 
 
@@ -74,13 +79,37 @@ class Execution:
     trace: Trace
 
 
-def _articulated(plan: ArticulationPlan, state: BackendState, backend: RobotBackend,
-                 previous: float) -> float:
-    """Joint progress reached, signed like the plan: measured on the object where possible."""
-    axis = backend.object_axis_base
-    if state.object_joint is not None and axis is not None:
-        return state.object_joint * (1.0 if float(axis @ plan.joint.axis) >= 0.0 else -1.0)
-    return plan.progress_from_pose(state.T_base_ee, previous)
+class _Progress:
+    """Joint progress made by this request, signed like the plan (rad or m).
+
+    One formula on every backend: :meth:`ArticulationPlan.progress_from_motion` of the grasp's
+    motion since this request's start (the plan's grasp pose), about / along the request's
+    axis. A real robot measures its TCP. Where the backend sees the object's grasped part
+    (simulation; ``start.object_pose``), the grasp is carried along by the part's own motion
+    instead, so what counts is how far the object moved, not the arm, and a joint left turned
+    by an earlier request counts nothing.
+    """
+
+    def __init__(self, plan: ArticulationPlan, start: BackendState) -> None:
+        self.plan = plan
+        part = start.object_pose
+        self._part_R0_T = None if part is None else part[:3, :3].T.copy()
+        self._part_p0 = None if part is None else part[:3, 3].copy()
+        self._revolute = plan.joint.joint_type == "revolute"
+
+    def __call__(self, state: BackendState, previous: float) -> float:
+        plan, part = self.plan, state.object_pose
+        if self._part_R0_T is None or self._part_p0 is None or part is None:
+            return plan.progress_from_pose(state.T_base_ee, previous)
+        R_moved = part[:3, :3] @ self._part_R0_T
+        if self._revolute:  # only the rotation counts
+            return plan.progress_from_motion(R_moved, _NO_DISPLACEMENT, previous)
+        grasp = plan.T_base_grasp[:3, 3]
+        return plan.progress_from_motion(R_moved, R_moved @ (grasp - self._part_p0)
+                                         + part[:3, 3] - grasp, previous)
+
+
+_NO_DISPLACEMENT = np.zeros(3)
 
 
 def execute(backend: RobotBackend, plan: ArticulationPlan, config: RobotBridgeConfig, *,
@@ -89,7 +118,8 @@ def execute(backend: RobotBackend, plan: ArticulationPlan, config: RobotBridgeCo
     """Follow ``plan`` on ``backend`` (already holding the grasp pose) under the safety limits.
 
     ``on_tick(state, articulating)`` runs after every control tick (publishing, pacing).
-    Success: no abort and at least ``(1 - success_tolerance) |amount|`` reached.
+    Success: no abort and at least ``(1 - success_tolerance) |amount|`` reached by this
+    request, in the direction of ``amount`` (:class:`_Progress`).
     """
     force_limit = config.force_limit_n if force_limit_n is None else min(force_limit_n,
                                                                           config.force_limit_n)
@@ -107,6 +137,7 @@ def execute(backend: RobotBackend, plan: ArticulationPlan, config: RobotBridgeCo
     n_f = 0
     s = backend.read()
     t0 = s.t_s
+    progress_made = _Progress(plan, s)
     progress = 0.0
     taus: list[Array] = [s.tau]
     dqs: list[Array] = []
@@ -129,7 +160,7 @@ def execute(backend: RobotBackend, plan: ArticulationPlan, config: RobotBridgeCo
         s = backend.read()
         f = math.sqrt(float(s.wrench[0] ** 2 + s.wrench[1] ** 2 + s.wrench[2] ** 2))
         tq = math.sqrt(float(s.wrench[3] ** 2 + s.wrench[4] ** 2 + s.wrench[5] ** 2))
-        articulated = _articulated(plan, s, backend, articulated)
+        articulated = progress_made(s, articulated)
         if moving:
             peak_f, peak_t = max(peak_f, f), max(peak_t, tq)
             sum_f += f
@@ -196,22 +227,39 @@ class Bridge:
     def __init__(self, backend: RobotBackend, config: RobotBridgeConfig) -> None:
         self.backend = backend
         self.config = config
-        self.last_execution: Execution | None = None
+        self.last_plan: ArticulationPlan | None = None      # of the last request, if checked
+        self.last_execution: Execution | None = None        # of the last request, if executed
 
     def plan(self, request: ArticulateRequest, model: KinematicModel | None,
              now_ns: int | None) -> ArticulationPlan | Refusal:
-        """The checked plan for ``request`` on ``model`` (camera frame), or why not."""
+        """The checked plan for ``request`` on ``model`` (in its ``frame_id``), or why not.
+
+        Model checks (type, probability, age), the model's frame mapped into the base frame by
+        its calibration (``T_base_camera`` / ``T_base_world``), the model's own uncertainty at
+        the current grasp, the amount, then the plan checks.
+        """
         c = self.config
         refusal = check_model(model, min_type_probability=c.min_type_probability,
                               max_age_s=c.max_model_age_s, now_ns=now_ns)
         if refusal is not None:
             return refusal
         assert model is not None
-        joint = joint_in_base(model, c.base_T_camera())
+        T_base_frame = c.base_T_frame(model.frame_id)
+        if T_base_frame is None:
+            return Refusal("uncalibrated_frame",
+                           f"the model is in the {model.frame_id!r} frame and "
+                           f"robot_bridge.T_base_{model.frame_id} is not set")
+        state = self.backend.read()
+        grasp = se3_inverse(T_base_frame) @ np.append(state.T_base_ee[:3, 3], 1.0)
+        refusal = check_uncertainty(
+            model, grasp[:3], max_direction_std_rad=math.radians(c.max_axis_direction_std_deg),
+            max_position_std_m=c.max_axis_position_std_m)
+        if refusal is not None:
+            return refusal
+        joint = joint_in_base(model, T_base_frame)
         refusal = check_amount(request.amount, request.duration_s, joint.joint_type)
         if refusal is not None:
             return refusal
-        state = self.backend.read()
         plan = ArticulationPlan(joint=joint, T_base_grasp=state.T_base_ee.copy(),
                                 amount=float(request.amount), duration_s=float(request.duration_s),
                                 hold_s=c.hold_s)
@@ -226,11 +274,20 @@ class Bridge:
 
     def articulate(self, request: ArticulateRequest, model: KinematicModel | None, *,
                    now_ns: int | None, on_tick: Tick | None = None,
-                   cancel: threading.Event | None = None) -> ArticulateResult:
-        """Check, plan and (unless ``request.dry_run``) execute; never raises for a bad model."""
+                   cancel: threading.Event | None = None,
+                   gate: StartGate | None = None) -> ArticulateResult:
+        """Check, plan and (unless ``request.dry_run``) execute; never raises for a bad model.
+
+        ``gate`` sees the checked plan last, just before execution (and before a dry run's
+        answer, so that a dry run answers what the request would get).
+        """
         stamp = model.stamp_ns if model is not None else 0
         frame = model.frame_id if model is not None else "camera"
+        self.last_execution = None
         planned = self.plan(request, model, now_ns)
+        self.last_plan = planned if isinstance(planned, ArticulationPlan) else None
+        if not isinstance(planned, Refusal) and gate is not None:
+            planned = gate(planned) or planned
         if isinstance(planned, Refusal):
             log.warning("articulation refused: %s (%s)", planned.reason, planned.detail)
             return ArticulateResult(stamp_ns=stamp, frame_id=frame, success=False,

@@ -235,13 +235,14 @@ class MujocoBackend:
         T[:3, 3] = self.data.xpos[self._handle_body]
         return T
 
-    def _object_joint(self) -> float | None:
-        return None if self.obj is None else float(self.data.qpos[self._obj_qadr])
-
     def _make_state(self, q: Array, dq: Array) -> BackendState:
+        joint = pose = None
+        if self.obj is not None:
+            joint = float(self.data.qpos[self._obj_qadr])
+            pose = self._handle_pose()
         return BackendState(t_s=self._t, q=q, dq=dq, T_base_ee=self._T_ee.copy(),
                             wrench=self._wrench - self._wrench_offset, tau=self._tau.copy(),
-                            saturated=self._saturated, object_joint=self._object_joint())
+                            saturated=self._saturated, object_joint=joint, object_pose=pose)
 
     # --- RobotBackend ---
 

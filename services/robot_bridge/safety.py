@@ -3,7 +3,15 @@
 Reasons are short stable labels (they end up in ``ArticulateResult.reason``):
 
 =====================  =========================================================================
+``busy``               another request is being served (one articulation at a time; the second
+                       is refused at once, never queued)
+``caller_gone``        the caller's timeout had passed before the articulation could start (the
+                       reply could not be delivered); nothing was started
+``timeout_too_short``  the planned motion would not end within the caller's timeout
 ``low_confidence``     the model's type probability is below the configured threshold
+``uncertain_model``    the model's own covariance puts its axis direction, or a revolute axis'
+                       position at the grasp, beyond the configured 1-sigma bounds
+``uncalibrated_frame`` the model's ``frame_id`` has no calibration to the robot base frame
 ``unsupported_type``   the model is rigid, disconnected or unknown (nothing to articulate)
 ``stale_model``        the model is older than the configured age (or stamped in the future), or
                        the kinematics service cannot be asked and the last model received from
@@ -33,6 +41,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from services.common.protocol import KinematicModel
+from services.kinematics.filters import tangent_basis
 
 Array = NDArray[np.float64]
 
@@ -113,6 +122,57 @@ def check_model(model: KinematicModel | None, *, min_type_probability: float,
         if age_s < -FUTURE_TOLERANCE_S:
             return Refusal("stale_model",
                            f"model is stamped {-age_s:.1f} s in the future (clock mismatch?)")
+    return None
+
+
+def check_uncertainty(model: KinematicModel, grasp: Array, *, max_direction_std_rad: float,
+                      max_position_std_m: float) -> Refusal | None:
+    """Refuse a model whose own covariance says its joint is not known well enough to act on.
+
+    ``model`` has passed :func:`check_model` (revolute or prismatic, with parameters); ``grasp``
+    (3,) is the robot's grasp point in the model's frame (m). Both bounds are on 1-sigma values
+    of the published covariance, whose axis coordinates ``(b1, b2)`` [rad] are in
+    ``tangent_basis(axis)`` (a small axis change is ``B b``):
+
+    - axis direction (both types): the square root of the largest eigenvalue of the
+      ``(b1, b2)`` block;
+    - axis position (revolute): the published ``point`` is the axis' point nearest the frame
+      origin, often half a metre from the object, so its own spread is mostly the direction's
+      spread times that lever. What the robot meets is the axis at the grasp: the point of the
+      axis nearest ``grasp`` moves, perpendicular to the axis, by
+      ``d = P_perp dp + s B db`` with ``s = (grasp - point) . axis``; its largest 1-sigma
+      displacement is checked.
+
+    A covariance that is not positive semi-definite in these coordinates is refused too.
+    """
+    params = model.revolute if model.type == "revolute" else model.prismatic
+    assert params is not None
+    C = np.asarray(params.covariance, float)
+    n = 5 if model.type == "revolute" else 2
+    block = C[:n, :n]
+    eig = np.linalg.eigvalsh(block)
+    if not np.isfinite(eig).all() or eig[0] < -1e-9 * max(float(np.abs(eig).max()), 1e-12):
+        names = "(b1, b2, px, py, pz)" if n == 5 else "(b1, b2)"
+        return Refusal("uncertain_model", f"the {model.type} covariance of {names} is not "
+                                          f"positive semi-definite (eigenvalue {eig[0]:.3g})")
+    direction = math.sqrt(max(float(np.linalg.eigvalsh(C[:2, :2]).max()), 0.0))
+    if direction > max_direction_std_rad:
+        return Refusal("uncertain_model",
+                       f"axis direction 1-sigma {math.degrees(direction):.2f} deg exceeds "
+                       f"{math.degrees(max_direction_std_rad):.2f} deg "
+                       "(robot_bridge.max_axis_direction_std_deg)")
+    rev = model.revolute
+    if model.type != "revolute" or rev is None:
+        return None
+    axis = np.asarray(rev.axis, float)
+    point = np.asarray(rev.point, float)
+    s = float((np.asarray(grasp, float) - point) @ axis)
+    J = np.hstack([s * tangent_basis(axis), np.eye(3) - np.outer(axis, axis)])
+    position = math.sqrt(max(float(np.linalg.eigvalsh(J @ block @ J.T).max()), 0.0))
+    if position > max_position_std_m:
+        return Refusal("uncertain_model",
+                       f"axis position 1-sigma at the grasp {position * 1e3:.1f} mm exceeds "
+                       f"{max_position_std_m * 1e3:.1f} mm (robot_bridge.max_axis_position_std_m)")
     return None
 
 

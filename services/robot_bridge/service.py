@@ -14,23 +14,33 @@
   from the service only if that arrived within ``max_cached_model_age_s`` (default 2 s, about
   one lease); otherwise it refuses with ``stale_model`` (``no_model`` if it never had one), the
   log saying why (query error, and since when the kinematics liveliness token is gone).
-  ``dry_run`` checks and plans without moving; a second request while one runs gets ``busy``;
+  ``dry_run`` checks and plans without moving;
 - subscribes ``handkse/{rig}/kinematics/model`` (FIFO; the latest is kept with its arrival
   time) and watches the liveliness token ``handkse/{rig}/alive/kinematics``.
 
-Threads: the bus threads only decode requests and hand them to the single robot thread, which
-owns the backend (one articulation at a time) and publishes the state. The MuJoCo backend is
-paced to ``sim_realtime_factor`` x real time (0: as fast as possible).
+One request at a time (docs/robot_bridge.md#requests): a request that arrives while another is
+being served, dry runs included, is answered ``busy`` at once, never queued. Each request has
+a reply deadline, its arrival plus its ``timeout_s`` (``request_timeout_s`` when it has none),
+earlier if its ``stamp_ns`` says it was sent long before; a request whose deadline has passed
+when it could start is not started (``caller_gone``), nor one whose motion would end after it
+(``timeout_too_short``). Refusals are counted by reason in ``ServiceStats.skipped``.
+
+Threads: the bus thread only decodes a request, takes the one slot and hands it to the robot
+thread, answering later (a deferred query answer), so the next request is answered meanwhile.
+The robot thread owns the backend and publishes the state. The MuJoCo backend is paced to
+``sim_realtime_factor`` x real time (0: as fast as possible).
 """
 
 from __future__ import annotations
 
 import argparse
 import logging
+import math
 import queue
 import threading
 import time
 from collections.abc import Callable
+from concurrent.futures import Future
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -60,26 +70,33 @@ from services.robot_bridge.config import RobotBridgeConfig, config_from_args
 from services.robot_bridge.executor import Bridge
 from services.robot_bridge.factory import make_backend
 from services.robot_bridge.safety import Refusal, check_cached_model
+from services.robot_bridge.trajectory import ArticulationPlan
 
 log = logging.getLogger(__name__)
 
 ModelFetcher = Callable[[], KinematicModel | None]
-# Extra seconds a request may wait beyond its planned motion (queueing, settling, pacing).
-_REQUEST_SLACK_S = 30.0
+# Time kept between the end of the planned motion and the caller's deadline, for the result
+# to be sent and delivered [s].
+REPLY_MARGIN_S = 0.5
 
 
 @dataclass
 class _Job:
+    """One accepted request: arrival and reply ``deadline`` on the node's clock (s), the
+    caller's ``timeout_s`` (given or assumed); ``answer`` completes the deferred query."""
+
     request: ArticulateRequest
-    done: threading.Event = field(default_factory=threading.Event)
-    result: ArticulateResult | None = None
+    received_at: float
+    deadline: float
+    timeout_s: float
+    answer: Future[QueryAnswer] = field(default_factory=Future)
 
 
 class RobotBridgeNode:
     """Binds a :class:`Bridge` on one backend to the bus through a :class:`Service`.
 
-    ``clock`` (monotonic seconds) times the age of received models and of the kinematics
-    liveliness state; tests pass a fake one.
+    ``clock`` (monotonic seconds) times the age of received models, of the kinematics
+    liveliness state and of requests; tests pass a fake one.
     """
 
     def __init__(self, service: Service, backend: RobotBackend, config: RobotBridgeConfig,
@@ -98,7 +115,8 @@ class RobotBridgeNode:
         self._kinematics_alive_at = clock()         # clock() of the last liveliness change
         self._lock = threading.Lock()
         self._jobs: queue.Queue[_Job] = queue.Queue()
-        self._busy = threading.Event()
+        self._job: _Job | None = None  # the request being served (under _lock)
+        self._refusal_logged: dict[str, float] = {}  # reason -> monotonic time of its last log
         self._next_publish = 0.0
         self._pace: tuple[float, float] | None = None  # (wall start, backend start time)
         keys = service.keys
@@ -129,8 +147,9 @@ class RobotBridgeNode:
         if not alive:
             log.warning("kinematics service is not alive (liveliness token gone)")
 
-    def answer_articulate(self, request: QueryRequest) -> QueryAnswer:
-        """Runs on a bus thread: decode, queue for the robot thread, wait for its result."""
+    def answer_articulate(self, request: QueryRequest) -> QueryAnswer | Future[QueryAnswer]:
+        """Runs on a bus thread: decode, take the one slot or answer ``busy``; the robot thread
+        answers an accepted request later (the returned future)."""
         self.service.received += 1
         if request.payload is None:
             self.service.reject("missing_payload", "robot/articulate query without a payload")
@@ -140,22 +159,46 @@ class RobotBridgeNode:
         except ProtocolError as exc:
             self.service.reject(exc.reason, str(exc))
             raise QueryRejected(f"bad ArticulateRequest: {exc}") from exc
-        if self._busy.is_set():
-            return QueryAnswer(_refusal("busy").to_msgpack())
-        self._busy.set()
-        job = _Job(req)
+        now = self.clock()
+        timeout = self.config.request_timeout_s if req.timeout_s is None else req.timeout_s
+        job = _Job(req, received_at=now, deadline=now + _reply_window_s(req, timeout),
+                   timeout_s=timeout)
+        with self._lock:
+            running = self._job
+            if running is None:
+                self._job = job
+        if running is not None:
+            return QueryAnswer(self._refused(Refusal(
+                "busy", f"serving a request received {now - running.received_at:.1f} s ago; "
+                        "one articulation at a time")).to_msgpack())
         self._jobs.put(job)
-        factor = self.config.sim_realtime_factor if self.backend.name == "mujoco" else 1.0
-        planned = req.duration_s + self.config.hold_s + self.config.settle_s
-        limit = _REQUEST_SLACK_S + (planned / factor if factor > 0 else planned)
-        if not job.done.wait(limit) or job.result is None:
-            raise QueryRejected(f"articulation did not finish within {limit:.0f} s")
-        return QueryAnswer(job.result.to_msgpack())
+        return job.answer
+
+    def _refused(self, refusal: Refusal) -> ArticulateResult:
+        """The result of a refused request, counted in ``skipped`` by reason and logged (at
+        most once a second per reason, with the count: a flood of requests cannot flood the
+        log)."""
+        count, due = self._count(refusal.reason)
+        if due:
+            log.warning("articulate refused: %s (%s; %d so far)", refusal.reason,
+                        refusal.detail, count)
+        return _refusal(refusal.reason)
+
+    def _count(self, reason: str) -> tuple[int, bool]:
+        """Count a refusal; (the count so far, whether a log line is due)."""
+        with self._lock:
+            skipped = self.service.skipped
+            count = skipped[reason] = skipped.get(reason, 0) + 1
+            now = time.monotonic()
+            due = now - self._refusal_logged.get(reason, -math.inf) >= 1.0
+            if due:
+                self._refusal_logged[reason] = now
+        return count, due
 
     # --- robot thread ---
 
     def run_robot(self, stop: threading.Event) -> None:
-        """The robot thread: execute queued requests, publish the state at the configured rate."""
+        """The robot thread: serve accepted requests, publish the state at the configured rate."""
         period = 1.0 / self.config.state_rate_hz
         while not stop.is_set():
             try:
@@ -163,29 +206,69 @@ class RobotBridgeNode:
             except queue.Empty:
                 job = None
             if job is not None:
-                try:
-                    job.result = self._execute(job.request, stop)
-                except Exception as exc:  # reported to the caller; the service keeps running
-                    log.exception("articulation failed")
-                    self.mode = "fault"
-                    job.result = _refusal("robot_error", f"{exc}")
-                finally:
-                    self._busy.clear()
-                    job.done.set()
+                self._serve(job, stop)
             self._publish_state(self.backend.read(), force=True)
+        while True:  # shutting down: answer what was accepted but not started
+            try:
+                job = self._jobs.get_nowait()
+            except queue.Empty:
+                break
+            self._finish(job, self._refused(Refusal("cancelled", "the bridge is stopping")))
 
-    def _execute(self, request: ArticulateRequest, stop: threading.Event) -> ArticulateResult:
+    def _serve(self, job: _Job, stop: threading.Event) -> None:
+        try:
+            result = self._execute(job, stop)
+        except Exception:  # reported to the caller; the service keeps running
+            log.exception("articulation failed")
+            self.mode = "fault"
+            result = _refusal("robot_error")
+        self._finish(job, result)
+
+    def _finish(self, job: _Job, result: ArticulateResult) -> None:
+        """Free the slot, then answer (so the caller's next request finds the bridge free)."""
+        with self._lock:
+            if self._job is job:
+                self._job = None
+        job.answer.set_result(QueryAnswer(result.to_msgpack()))
+
+    def _execute(self, job: _Job, stop: threading.Event) -> ArticulateResult:
+        request = job.request
+        # The deadline is checked last (the gate), so that a request is told first what is
+        # wrong with it or its model; a caller gone meanwhile costs at most the model query.
         model = request.model or self._model_from_service()
         if isinstance(model, Refusal):
-            return _refusal(model.reason, model.detail)
+            return self._refused(model)
         self._pace = None
         result = self.bridge.articulate(request, model, now_ns=time.time_ns(),
-                                        on_tick=self._on_tick, cancel=stop)
+                                        on_tick=self._on_tick, cancel=stop,
+                                        gate=lambda plan: self._check_deadline(job, plan))
+        if not result.success and self.bridge.last_execution is None:
+            self._count(result.reason)  # refused by a check (logged by the bridge): nothing moved
         self.mode = "fault" if result.reason == "robot_error" else "idle"
         log.info("articulate: success=%s reason=%s articulated=%.4f peak %.1f N mean %.1f N",
                  result.success, result.reason, result.articulated, result.peak_force_n,
                  result.mean_force_n)
         return result
+
+    def _check_deadline(self, job: _Job, plan: ArticulationPlan) -> Refusal | None:
+        """Start only what can be answered: the caller is still waiting and the planned motion
+        (duration and hold, at the simulation's pace) ends ``REPLY_MARGIN_S`` before its
+        deadline."""
+        now = self.clock()
+        if now >= job.deadline:
+            return Refusal("caller_gone",
+                           f"the caller stopped waiting {now - job.deadline:.1f} s ago (timeout "
+                           f"{job.timeout_s:.1f} s; the request arrived "
+                           f"{now - job.received_at:.1f} s ago); not started")
+        factor = self.config.sim_realtime_factor if self.backend.name == "mujoco" else 1.0
+        motion_s = plan.total_s / factor if factor > 0.0 else plan.total_s
+        left_s = job.deadline - now
+        if motion_s + REPLY_MARGIN_S > left_s:
+            return Refusal("timeout_too_short",
+                           f"the motion takes {motion_s:.1f} s (+{REPLY_MARGIN_S} s to reply) but "
+                           f"the caller waits only {left_s:.1f} s more (timeout "
+                           f"{job.timeout_s:.1f} s); send a longer ArticulateRequest.timeout_s")
+        return None
 
     def _model_from_service(self) -> KinematicModel | Refusal:
         """The kinematics service's current model; if it cannot be asked, the last model
@@ -250,6 +333,17 @@ class RobotBridgeNode:
         self.service.publish(keys.robot_state, msg)
 
 
+def _reply_window_s(request: ArticulateRequest, timeout_s: float) -> float:
+    """Seconds from its arrival until the caller stops waiting: ``timeout_s``, less the time
+    since the request's ``stamp_ns`` (wall clock) when that is set and in the past (a request
+    held up on the way; a stamp in the future, another host's clock ahead, is ignored)."""
+    if request.stamp_ns > 0:
+        sent_ago_s = (time.time_ns() - request.stamp_ns) * 1e-9
+        if sent_ago_s > 0.0:
+            return timeout_s - sent_ago_s
+    return timeout_s
+
+
 def _rigid(T: np.ndarray) -> np.ndarray:
     """A pose with its rotation re-orthonormalised (simulation round-off would fail decoding)."""
     out = np.array(T, "<f8")
@@ -259,9 +353,7 @@ def _rigid(T: np.ndarray) -> np.ndarray:
     return out
 
 
-def _refusal(reason: str, detail: str = "") -> ArticulateResult:
-    if detail:
-        log.warning("articulate refused: %s (%s)", reason, detail)
+def _refusal(reason: str) -> ArticulateResult:
     return ArticulateResult(success=False, reason=reason, articulated=0.0, peak_force_n=0.0,
                             mean_force_n=0.0, duration_s=0.0)
 

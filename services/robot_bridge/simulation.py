@@ -239,10 +239,8 @@ def articulate_in_simulation(model: KinematicModel, obj: ObjectInCamera, *,
         return SimArticulation(result, None, T_bc, None, amt, None)
     bridge = Bridge(backend, cfg)
     now = time.time_ns() if check_age else None
-    planned = bridge.plan(request, model, now)
     result = bridge.articulate(request, model, now_ns=now)
-    return SimArticulation(result, bridge.last_execution, T_bc, spec, amt,
-                           planned if isinstance(planned, ArticulationPlan) else None)
+    return SimArticulation(result, bridge.last_execution, T_bc, spec, amt, bridge.last_plan)
 
 
 def articulate_demonstration(model: KinematicModel, demo: object,

@@ -1,9 +1,10 @@
 """Cartesian articulation trajectories from a kinematic model and the grasp pose.
 
-The model arrives in the camera frame (``KinematicModel.frame_id``; "world" is the static camera
-frame, see docs/protocol.md) and is moved into the robot base frame with the hand-eye calibration
-``T_base_camera``. From the end-effector (TCP) pose at grasp ``(p0, R0)`` and a minimum-jerk
-joint profile ``theta(t)`` from 0 to ``amount``:
+The model arrives in its ``frame_id`` ("camera", or "world" for a moving camera) and is moved
+into the robot base frame with that frame's calibration (``T_base_camera`` / ``T_base_world``,
+see :meth:`~services.robot_bridge.config.RobotBridgeConfig.base_T_frame`). From the
+end-effector (TCP) pose at grasp ``(p0, R0)`` and a minimum-jerk joint profile ``theta(t)`` from
+0 to ``amount``:
 
 - revolute (unit axis ``a`` through ``c``): ``p = c + R(a, theta) (p0 - c)``,
   ``R = R(a, theta) R0``, ``w = theta_dot a``, ``v = w x (p - c)``;
@@ -22,7 +23,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from services.common.protocol import KinematicModel
-from services.common.se3 import quat_wxyz_from_matrix, so3_exp_fast
+from services.common.se3 import so3_exp_fast
 from services.robot_bridge.safety import Refusal
 
 Array = NDArray[np.float64]
@@ -43,12 +44,13 @@ class JointInBase:
     point: Array
 
 
-def joint_in_base(model: KinematicModel, T_base_camera: Array) -> JointInBase:
-    """The model's most probable joint moved from its frame into the base frame.
+def joint_in_base(model: KinematicModel, T_base_frame: Array) -> JointInBase:
+    """The model's most probable joint moved from its frame into the base frame with
+    ``T_base_frame``, the calibration of the model's ``frame_id``.
 
     Raises ``ValueError`` when the model carries no revolute/prismatic parameters for its type.
     """
-    R, t = T_base_camera[:3, :3], T_base_camera[:3, 3]
+    R, t = T_base_frame[:3, :3], T_base_frame[:3, 3]
     if model.type == "revolute" and model.revolute is not None:
         axis = R @ np.asarray(model.revolute.axis, float)
         point = R @ np.asarray(model.revolute.point, float) + t
@@ -145,19 +147,51 @@ class ArticulationPlan:
         return float(self.amount * (self.joint.axis @ self.T_base_grasp[:3, 2]))
 
     def progress_from_pose(self, T_base_ee: Array, previous: float = 0.0) -> float:
-        """Joint progress (rad or m, signed like ``amount``) implied by an end-effector pose.
+        """Joint progress (rad or m, signed like ``amount``) implied by an end-effector pose:
+        :meth:`progress_from_motion` of the TCP's motion since the grasp pose (the real robot,
+        where the object's joint is not measured)."""
+        T0 = self.T_base_grasp
+        return self.progress_from_motion(T_base_ee[:3, :3] @ T0[:3, :3].T,
+                                         T_base_ee[:3, 3] - T0[:3, 3], previous)
 
-        Revolute: the rotation of the TCP since grasp projected on the axis (the twist angle of
-        a swing-twist decomposition), unwrapped to the branch nearest ``previous``; prismatic:
-        the TCP displacement along the axis. Used where the object's joint is not measured
-        (the real robot).
+    def progress_from_motion(self, R_moved: Array, displacement: Array,
+                             previous: float = 0.0) -> float:
+        """Joint progress (rad or m, signed like ``amount``) of a rigid motion of the grasp.
+
+        ``R_moved`` (3x3) is the rotation since the grasp pose (base frame, applied on the
+        left), ``displacement`` (3,) that of the grasp point [m]. Revolute: the rotation
+        projected on the axis (the twist angle of a swing-twist decomposition), unwrapped to
+        the branch nearest ``previous``; prismatic: the displacement along the axis.
         """
         a = self.joint.axis
         if self.joint.joint_type == "prismatic":
-            return float((T_base_ee[:3, 3] - self.T_base_grasp[:3, 3]) @ a)
-        q = quat_wxyz_from_matrix(T_base_ee[:3, :3] @ self.T_base_grasp[:3, :3].T)
-        angle = 2.0 * math.atan2(float(q[1:] @ a), float(q[0]))
+            return float(displacement @ a)
+        angle = twist_angle(R_moved, a)
         return angle + 2.0 * math.pi * round((previous - angle) / (2.0 * math.pi))
+
+
+def twist_angle(R: Array, axis: Array) -> float:
+    """Angle in (-pi, pi] of the twist of ``R`` about the unit ``axis`` (swing-twist
+    decomposition): ``2 atan2(v . axis, w)`` of its quaternion ``(w, v)`` with ``w >= 0``.
+
+    The quaternion is Shepperd's (largest component as pivot, exact at pi) scaled by its
+    positive pivot divisor, which ``atan2`` ignores: no square root (called every control tick).
+    """
+    (m00, m01, m02), (m10, m11, m12), (m20, m21, m22) = R.tolist()
+    trace = m00 + m11 + m22
+    if trace >= m00 and trace >= m11 and trace >= m22:
+        w, x, y, z = 1.0 + trace, m21 - m12, m02 - m20, m10 - m01
+    elif m00 >= m11 and m00 >= m22:
+        w, x, y, z = m21 - m12, 1.0 + m00 - m11 - m22, m01 + m10, m02 + m20
+    elif m11 >= m22:
+        w, x, y, z = m02 - m20, m01 + m10, 1.0 - m00 + m11 - m22, m12 + m21
+    else:
+        w, x, y, z = m10 - m01, m02 + m20, m12 + m21, 1.0 - m00 - m11 + m22
+    ax, ay, az = axis.tolist()
+    along = x * ax + y * ay + z * az
+    if w < 0.0:
+        w, along = -w, -along
+    return 2.0 * math.atan2(along, w)
 
 
 def plan_checks(plan: ArticulationPlan, q7_rad: float, *, max_linear_m_per_s: float,

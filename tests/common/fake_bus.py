@@ -28,6 +28,7 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable
+from concurrent.futures import Future
 from dataclasses import dataclass
 from functools import lru_cache
 from typing import Any
@@ -363,6 +364,8 @@ def _answer(queryable: Declaration, request: QueryRequest,
     """Run one handler as the real bus does: a reply, or an error reply with the reason."""
     try:
         answer = queryable.target(request)
+        if isinstance(answer, Future):  # deferred: this query waits for it, later ones do not
+            answer = answer.result()
     except QueryRejected as exc:
         out.append((False, queryable.key_expr, str(exc).encode()))
         return

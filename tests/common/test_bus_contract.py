@@ -12,6 +12,7 @@ import inspect
 import threading
 import uuid
 from collections.abc import Iterator
+from concurrent.futures import Future
 from pathlib import Path
 from typing import Any
 
@@ -171,6 +172,47 @@ def test_a_queryable_answers_with_its_key_and_reports_errors(pair: tuple[Any, An
     assert not isinstance(rejected.value, (NoResponder, QueryTimeout))
     with pytest.raises(BusError, match="internal error: ValueError"):
         b.get(f"{key}?crash=1")
+
+
+def test_a_deferred_answer_does_not_hold_up_later_queries(pair: tuple[Any, Any],
+                                                           root: str) -> None:
+    """A handler may return a Future (a long job): that query is answered when another thread
+    completes it, and the queries after it are answered meanwhile."""
+    a, b = pair
+    key = f"{root}/deferred"
+    pending: list[Future[QueryAnswer]] = []
+
+    def handler(request: QueryRequest) -> QueryAnswer | Future[QueryAnswer]:
+        if request.payload in (b"later", b"fail later"):
+            job: Future[QueryAnswer] = Future()
+            pending.append(job)
+            return job
+        return QueryAnswer(b"now")
+
+    a.declare_queryable(key, handler)
+    wait_until(lambda: _answers(b, key), what="the queryable")
+    replies: list[Any] = []
+
+    def ask(payload: bytes) -> None:
+        try:
+            replies.append(b.get(key, payload=payload, timeout=20.0))
+        except BusError as exc:
+            replies.append(exc)
+
+    waiting = threading.Thread(target=ask, args=(b"later",))
+    waiting.start()
+    wait_until(lambda: len(pending) == 1, what="the deferred query")
+    assert b.get(key, payload=b"quick") == [(key, b"now")]  # while the first is open
+    assert not replies
+    pending[0].set_result(QueryAnswer(b"done"))
+    waiting.join(20.0)
+    assert replies == [[(key, b"done")]]
+    failing = threading.Thread(target=ask, args=(b"fail later",))
+    failing.start()
+    wait_until(lambda: len(pending) == 2, what="the second deferred query")
+    pending[1].set_exception(QueryRejected("refused later"))
+    failing.join(20.0)
+    assert isinstance(replies[-1], BusError) and "refused later" in str(replies[-1])
 
 
 def test_a_wildcard_get_collects_a_reply_from_every_queryable(pair: tuple[Any, Any],

@@ -6,13 +6,14 @@ import math
 import subprocess
 import threading
 import time
+from dataclasses import replace
 
 import numpy as np
 import pytest
 
 pytest.importorskip("mujoco")
 
-from services.common.bus import Bus, BusError, QueryAnswer
+from services.common.bus import Bus, BusError, QueryAnswer, QueryTimeout
 from services.common.keys import Keys
 from services.common.protocol import (
     ArticulateRequest,
@@ -22,6 +23,7 @@ from services.common.protocol import (
     RobotState,
     ServiceStats,
 )
+from services.common.se3 import so3_log
 from services.robot_bridge.mujoco_backend import nominal_grasp_pose
 from tests.conftest import Processes, output_of, wait_until, zenoh_args
 
@@ -116,30 +118,120 @@ def test_articulate_over_zenoh_and_robot_state(procs: Processes, router: str,
     assert bridge.poll() is None
 
 
-def test_requests_are_served_one_at_a_time(procs: Processes, router: str,
-                                           client_bus: Bus) -> None:
-    """Zenoh runs a queryable's callbacks one after the other: a second request waits for the
-    first articulation to end (the bridge would answer ``busy`` if they overlapped)."""
+def _stats(bus: Bus) -> ServiceStats:
+    return ServiceStats.from_msgpack(bus.get(KEYS.stats("robot_bridge"))[0][1])
+
+
+def _turned(T_a: np.ndarray, T_b: np.ndarray) -> float:
+    """Angle (rad) the hand turned from pose ``T_a`` to ``T_b``."""
+    return float(np.linalg.norm(so3_log(T_b[:3, :3] @ T_a[:3, :3].T)))
+
+
+def _watch_states(bus: Bus) -> list[RobotState]:
     states: list[RobotState] = []
-    client_bus.subscribe(KEYS.robot_state, lambda k, p: states.append(RobotState.from_msgpack(p)))
+    bus.subscribe(KEYS.robot_state, lambda k, p: states.append(RobotState.from_msgpack(p)))
+    wait_until(lambda: len(states) >= 3, 10, what="robot states")
+    return states
+
+
+def test_concurrent_requests_one_runs_the_others_are_busy(procs: Processes, router: str,
+                                                          client_bus: Bus) -> None:
+    """One articulation at a time: of simultaneous requests exactly one runs; the others, and
+    one sent while it runs, are answered ``busy`` before it ends, never queued to run later."""
     _start_bridge(procs, router)
     wait_until(lambda: KEYS.alive("robot_bridge") in client_bus.alive(KEYS.alive_all), 20,
                what="robot bridge liveliness")
-    done: list[tuple[float, ArticulateResult]] = []
+    states = _watch_states(client_bus)
+    T_before = states[-1].T_base_ee
+    answers: list[tuple[str, ArticulateResult]] = []  # in the order they arrived
+    lock = threading.Lock()
+    start = threading.Barrier(3)
 
-    def first() -> None:
-        r = _articulate(client_bus, ArticulateRequest(
-            amount=math.pi / 4, duration_s=1.5, model=_key_model(time.time_ns())))
-        done.append((time.monotonic(), r))
+    def ask(name: str, duration_s: float, wait: bool = True) -> None:
+        request = ArticulateRequest(amount=math.pi / 4, duration_s=duration_s,
+                                    model=_key_model(time.time_ns()), timeout_s=30.0)
+        if wait:
+            start.wait(10.0)
+        result = _articulate(client_bus, request)
+        with lock:
+            answers.append((name, result))
 
-    t = threading.Thread(target=first)
-    t.start()
-    wait_until(lambda: any(s.mode == "articulating" for s in states), 20,
-               what="the first articulation under way")
-    second = _articulate(client_bus, ArticulateRequest(
-        amount=math.pi / 4, duration_s=1.5, model=_key_model(time.time_ns()), dry_run=True))
-    answered = time.monotonic()
-    t.join(30)
-    assert done and done[0][1].success
-    if second.reason != "busy":
-        assert second.reason == "dry_run" and answered >= done[0][0] - 0.05
+    threads = [threading.Thread(target=ask, args=(f"simultaneous {i}", 1.5)) for i in range(3)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(60.0)
+    reasons = sorted(r.reason for _, r in answers)
+    assert reasons == ["busy", "busy", "ok"], answers
+    assert answers[-1][1].reason == "ok"  # both busy answers came before the articulation ended
+    # exactly one quarter turn was made (the hand turns with the key), not two or three
+    assert _turned(T_before, states[-1].T_base_ee) == pytest.approx(math.pi / 4, abs=0.05)
+
+    # a request sent while one is running is busy too, and is not run afterwards
+    answers.clear()
+    n_states = len(states)
+    T_start = states[-1].T_base_ee
+    running = threading.Thread(target=ask, args=("running", 3.0, False))
+    running.start()
+    wait_until(lambda: any(s.mode == "articulating" for s in states[n_states:]), 20,
+               what="the articulation to start")
+    ask("while running", 1.5, wait=False)
+    running.join(60.0)
+    assert [(name, r.reason) for name, r in answers] == [("while running", "busy"),
+                                                         ("running", "ok")], answers
+
+    # the slot is free again once answered; the busy request never ran: two quarter turns
+    answers.clear()
+    ask("after", 1.5, wait=False)
+    assert answers[0][1].reason == "ok", answers
+    wait_until(lambda: states[-1].mode == "idle", 10, what="idle after the articulation")
+    assert _turned(T_start, states[-1].T_base_ee) == pytest.approx(math.pi / 2, abs=0.05)
+    assert _stats(client_bus).skipped.get("busy") == 3
+
+
+def test_a_caller_that_timed_out_is_never_started(procs: Processes, router: str,
+                                                  client_bus: Bus) -> None:
+    """The bridge starts nothing whose reply can no longer be delivered: a caller that gave up
+    while the bridge waited for the model, a request stamped longer ago than its timeout, a
+    motion longer than the caller waits."""
+    bridge = _start_bridge(procs, router, "--set", "robot_bridge.model_query_timeout_s=30")
+    wait_until(lambda: KEYS.alive("robot_bridge") in client_bus.alive(KEYS.alive_all), 20,
+               what="robot bridge liveliness")
+    states = _watch_states(client_bus)
+    q_before = states[-1].q.copy()
+
+    # the kinematics service answers the bridge's model query only after the caller gave up
+    asked, released = threading.Event(), threading.Event()
+
+    def slow_kinematics(_request: object) -> QueryAnswer:
+        asked.set()
+        released.wait(30.0)
+        return QueryAnswer(_key_model(time.time_ns()).to_msgpack())
+
+    kinematics = client_bus.declare_queryable(KEYS.kinematics_model, slow_kinematics)
+    request = ArticulateRequest(amount=math.pi / 4, duration_s=1.5, timeout_s=1.0)
+    with pytest.raises(QueryTimeout):
+        client_bus.get(KEYS.robot_articulate, payload=request.to_msgpack(), timeout=1.0)
+    assert asked.is_set()  # the bridge was waiting for the model when the caller gave up
+    released.set()
+    wait_until(lambda: _stats(client_bus).skipped.get("caller_gone") == 1, 30,
+               what="the bridge to drop the request of the caller that timed out")
+    assert "caller stopped waiting" in output_of(bridge)
+    kinematics.undeclare()
+
+    # a request stamped 3 s ago with a 2 s timeout: its caller has gone (here it still listens)
+    late = ArticulateRequest(stamp_ns=time.time_ns() - 3 * 10**9, amount=math.pi / 4,
+                             duration_s=1.5, timeout_s=2.0, model=_key_model(time.time_ns()))
+    assert _articulate(client_bus, late).reason == "caller_gone"
+    # 2 s of motion and 0.5 s hold do not fit in a 2 s timeout; a dry run says so too
+    short = ArticulateRequest(amount=math.pi / 4, duration_s=2.0, timeout_s=2.0,
+                              model=_key_model(time.time_ns()))
+    assert _articulate(client_bus, short).reason == "timeout_too_short"
+    assert _articulate(client_bus, replace(short, dry_run=True)).reason == "timeout_too_short"
+
+    assert all(s.mode != "articulating" for s in states)
+    assert np.allclose(states[-1].q, q_before, atol=1e-6)
+    # ... and a request that fits is served
+    fits = replace(short, timeout_s=10.0)
+    assert _articulate(client_bus, fits).reason == "ok"
+    assert _stats(client_bus).skipped == {"caller_gone": 2, "timeout_too_short": 2}

@@ -11,6 +11,7 @@ import math
 import threading
 import time
 from collections.abc import Callable, Iterator
+from concurrent.futures import Future
 
 import numpy as np
 import pytest
@@ -41,7 +42,8 @@ class MemoryBus:
 
     def __init__(self) -> None:
         self.subscribers: dict[str, list[Callable[[str, bytes], None]]] = {}
-        self.queryables: dict[str, Callable[[QueryRequest], QueryAnswer]] = {}
+        self.queryables: dict[str, Callable[[QueryRequest],
+                                            QueryAnswer | Future[QueryAnswer]]] = {}
         self.watchers: dict[str, list[Callable[[str, bool], None]]] = {}
         self.puts = 0
 
@@ -52,7 +54,9 @@ class MemoryBus:
     def subscribe(self, key: str, callback: Callable[[str, bytes], None]) -> None:
         self.subscribers.setdefault(key, []).append(callback)
 
-    def declare_queryable(self, key: str, handler: Callable[[QueryRequest], QueryAnswer]) -> None:
+    def declare_queryable(self, key: str,
+                          handler: Callable[[QueryRequest], QueryAnswer | Future[QueryAnswer]]
+                          ) -> None:
         self.queryables[key] = handler
 
     def declare_token(self, key: str) -> None:
@@ -107,14 +111,20 @@ class Rig:
 
     def publish_model(self, model: KinematicModel) -> None:
         """A model arriving on the kinematics model key (the subscription path)."""
+        before = self.node._latest
         self.bus.deliver(KEYS.kinematics_model, model.to_msgpack())
-        handled = threading.Event()
-        self.service.call_soon(handled.set)  # the loop is FIFO: the model is handled first
-        assert handled.wait(5.0)
+        # Control calls overtake queued samples, so no call_soon marker can wait for it.
+        deadline = time.monotonic() + 5.0
+        while self.node._latest is before:
+            assert time.monotonic() < deadline, "the node did not take the model"
+            time.sleep(0.002)
 
     def articulate(self, request: ArticulateRequest = DRY) -> ArticulateResult:
+        """Ask as the bus would; an accepted request is answered later (a deferred answer)."""
         handler = self.bus.queryables[KEYS.robot_articulate]
         answer = handler(QueryRequest(KEYS.robot_articulate, {}, request.to_msgpack()))
+        if isinstance(answer, Future):
+            answer = answer.result(timeout=30.0)
         return ArticulateResult.from_msgpack(answer.payload)
 
     def close(self) -> None:

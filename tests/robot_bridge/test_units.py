@@ -11,8 +11,15 @@ import sys
 import numpy as np
 import pytest
 
-from services.common.protocol import KinematicModel, PrismaticParams, RevoluteParams
+from services.common.protocol import (
+    ArticulateRequest,
+    KinematicModel,
+    PrismaticParams,
+    ProtocolError,
+    RevoluteParams,
+)
 from services.common.se3 import quat_wxyz_from_matrix, so3_exp, so3_log
+from services.kinematics.filters import tangent_basis
 from services.robot_bridge.config import RobotBridgeConfig, config_from_args
 from services.robot_bridge.controller import (
     ImpedanceGains,
@@ -26,6 +33,7 @@ from services.robot_bridge.safety import (
     SaturationWatch,
     check_amount,
     check_model,
+    check_uncertainty,
     clamp_torque,
     clamp_twist,
     tracking_violation,
@@ -39,6 +47,7 @@ from services.robot_bridge.trajectory import (
     joint_in_base,
     min_jerk,
     plan_checks,
+    twist_angle,
 )
 
 TAU_MAX = np.array([87.0] * 4 + [12.0] * 3)
@@ -187,6 +196,26 @@ def test_progress_unwraps_beyond_half_a_turn() -> None:
         assert prev == pytest.approx(theta, abs=1e-9)
 
 
+def test_twist_angle_is_the_swing_twist_angle() -> None:
+    """Against the quaternion form ``2 atan2(v . a, w)`` (w >= 0), at every Shepperd branch
+    and at half turns."""
+    rotations = [so3_exp(RNG.normal(size=3)) for _ in range(200)]
+    rotations += [so3_exp(math.pi * np.eye(3)[i]) for i in range(3)]
+    rotations += [so3_exp((math.pi - 1e-9) * np.array([0.0, 0.6, 0.8]))]
+    for R in rotations:
+        a = RNG.normal(size=3)
+        a /= np.linalg.norm(a)
+        q = quat_wxyz_from_matrix(R)
+        expected = 2.0 * math.atan2(float(q[1:] @ a), float(q[0]))
+        got = twist_angle(R, a)
+        assert abs(math.remainder(got - expected, 2.0 * math.pi)) < 1e-9
+    axis = np.array([0.0, 0.6, 0.8])
+    for theta in (0.3, -2.0, 3.0):
+        assert twist_angle(so3_exp(theta * axis), axis) == pytest.approx(theta, abs=1e-12)
+    # a swing about a perpendicular axis adds no twist
+    assert twist_angle(so3_exp(0.7 * np.array([1.0, 0.0, 0.0])), axis) == pytest.approx(0.0)
+
+
 def test_joint_in_base_moves_the_model_through_the_hand_eye() -> None:
     T_bc = _pose(so3_exp(np.array([0.3, -1.2, 0.4])), np.array([0.2, -0.3, 0.9]))
     j = joint_in_base(_model("revolute"), T_bc)
@@ -258,6 +287,75 @@ def test_check_model_reasons() -> None:
     assert check_model(old, now_ns=None, **kw) is None  # offline: no age check
 
 
+def _revolute_with(covariance: np.ndarray, axis: np.ndarray, point: np.ndarray
+                   ) -> KinematicModel:
+    probs = {"rigid": 0.0, "prismatic": 0.0, "revolute": 1.0, "disconnected": 0.0}
+    return KinematicModel(type="revolute", probabilities=probs, revolute=RevoluteParams(
+        axis=axis, point=point, q=0.0, dq=0.0, covariance=covariance))
+
+
+BOUNDS = {"max_direction_std_rad": math.radians(5.0), "max_position_std_m": 0.01}
+
+
+def test_check_uncertainty_looks_at_the_axis_where_the_robot_holds_it() -> None:
+    """The published point is the axis' foot from the frame origin, here 0.6 m from the grasp:
+    a direction known to 1 deg and a line known to 1 mm at the grasp pass, although the foot
+    itself is ~10 mm uncertain; the same direction spread without that correlation does not."""
+    axis = np.array([0.0, 0.6, 0.8])
+    point = np.array([0.1, 0.0, 0.0])                 # foot of the axis from the origin
+    grasp = point + 0.6 * axis + np.array([0.02, 0.0, 0.0])
+    B = tangent_basis(axis)
+    P = np.eye(3) - np.outer(axis, axis)
+    s = float((grasp - point) @ axis)
+    sigma_b, sigma_line = math.radians(1.0), 0.001
+    # d_point = -s B d_b + e (e perpendicular noise): the axis pivots about the grasp
+    J = np.zeros((7, 5))
+    J[:2, :2] = np.eye(2) * sigma_b
+    J[2:5, :2] = -s * B * sigma_b
+    J[2:5, 2:5] = P * sigma_line
+    pivoting = J @ J.T
+    assert math.sqrt(np.linalg.eigvalsh(pivoting[2:5, 2:5]).max()) > 0.009
+    assert check_uncertainty(_revolute_with(pivoting, axis, point), grasp, **BOUNDS) is None
+    loose = pivoting.copy()
+    loose[:2, 2:5] = loose[2:5, :2] = 0.0             # the same spreads, uncorrelated
+    refusal = check_uncertainty(_revolute_with(loose, axis, point), grasp, **BOUNDS)
+    assert refusal is not None and refusal.reason == "uncertain_model"
+    assert "axis position 1-sigma at the grasp" in refusal.detail
+
+
+def test_check_uncertainty_reasons() -> None:
+    axis, point = np.array([0.0, 0.0, 1.0]), np.zeros(3)
+    grasp = np.array([0.0, 0.0, 0.3])
+    assert check_uncertainty(_revolute_with(np.zeros((7, 7)), axis, point), grasp,
+                             **BOUNDS) is None
+    tilted = np.diag([math.radians(6.0) ** 2, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])
+    refusal = check_uncertainty(_revolute_with(tilted, axis, point), grasp, **BOUNDS)
+    assert refusal is not None and refusal.detail.startswith(
+        "axis direction 1-sigma 6.00 deg exceeds 5.00 deg")
+    indefinite = np.zeros((7, 7))
+    indefinite[0, 0] = indefinite[1, 1] = 1e-6
+    indefinite[0, 1] = indefinite[1, 0] = 1e-3      # symmetric, non-negative diagonal
+    refusal = check_uncertainty(_revolute_with(indefinite, axis, point), grasp, **BOUNDS)
+    assert refusal is not None and "not positive semi-definite" in refusal.detail
+    probs = {"rigid": 0.0, "prismatic": 1.0, "revolute": 0.0, "disconnected": 0.0}
+    prismatic = KinematicModel(type="prismatic", probabilities=probs, prismatic=PrismaticParams(
+        axis=axis, q=0.0, dq=0.0, covariance=np.diag([0.01, 0.01, 1.0, 1.0])))
+    refusal = check_uncertainty(prismatic, grasp, **BOUNDS)
+    assert refusal is not None and "axis direction 1-sigma 5.73 deg" in refusal.detail
+
+
+def test_articulate_request_timeout_is_optional() -> None:
+    plain = ArticulateRequest(amount=0.3, duration_s=2.0)
+    assert "timeout_s" not in plain.to_dict()
+    assert ArticulateRequest.from_msgpack(plain.to_msgpack()).timeout_s is None
+    timed = ArticulateRequest(amount=0.3, duration_s=2.0, timeout_s=7.5)
+    assert ArticulateRequest.from_msgpack(timed.to_msgpack()).timeout_s == 7.5
+    for bad in (0.0, -1.0, math.inf):
+        with pytest.raises(ProtocolError, match="timeout_s"):
+            ArticulateRequest.from_msgpack(
+                ArticulateRequest(amount=0.3, duration_s=2.0, timeout_s=bad).to_msgpack())
+
+
 def test_check_amount() -> None:
     assert check_amount(0.0, 1.0, "revolute").reason == "invalid_request"
     assert check_amount(math.nan, 1.0, "revolute").reason == "invalid_request"
@@ -296,6 +394,10 @@ def test_config_defaults_and_validation() -> None:
         RobotBridgeConfig(backend="ur5")
     with pytest.raises(ValueError, match="Cartesian limits"):
         RobotBridgeConfig(max_angular_speed_rad_per_s=3.0)
+    assert (c.max_axis_direction_std_deg, c.max_axis_position_std_m) == (5.0, 0.01)
+    for name in ("max_axis_direction_std_deg", "max_axis_position_std_m", "request_timeout_s"):
+        with pytest.raises(ValueError, match=name):
+            RobotBridgeConfig(**{name: 0.0})
 
 
 def test_config_from_args_reads_overrides() -> None:
