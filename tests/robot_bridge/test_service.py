@@ -209,6 +209,7 @@ def test_a_caller_that_timed_out_is_never_started(procs: Processes, router: str,
         return QueryAnswer(_key_model(time.time_ns()).to_msgpack())
 
     kinematics = client_bus.declare_queryable(KEYS.kinematics_model, slow_kinematics)
+    session = client_bus.declare_token(KEYS.session("kinematics", client_bus.zid))
     request = ArticulateRequest(amount=math.pi / 4, duration_s=1.5, timeout_s=1.0)
     with pytest.raises(QueryTimeout):
         client_bus.get(KEYS.robot_articulate, payload=request.to_msgpack(), timeout=1.0)
@@ -218,6 +219,7 @@ def test_a_caller_that_timed_out_is_never_started(procs: Processes, router: str,
                what="the bridge to drop the request of the caller that timed out")
     assert "caller stopped waiting" in output_of(bridge)
     kinematics.undeclare()
+    session.undeclare()
 
     # a request stamped 3 s ago with a 2 s timeout: its caller has gone (here it still listens)
     late = ArticulateRequest(stamp_ns=time.time_ns() - 3 * 10**9, amount=math.pi / 4,
