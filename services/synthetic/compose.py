@@ -261,7 +261,7 @@ def compose(object_name: str, participant: int, seed: int, *, variant: str = "cu
 
     # Contact phases, occlusion level, held points (object frame).
     n = len(t)
-    phase = np.full(n, PHASE_FREE)
+    phase = np.full(n, PHASE_FREE, dtype="<U7")
     seg_index = np.full(n, -1, dtype=np.int64)
     level = np.zeros(n)
     for c in tl.contacts:
@@ -331,8 +331,8 @@ def compose(object_name: str, participant: int, seed: int, *, variant: str = "cu
         segments.append(ContactSegment(
             index=c.index, joint=c.joint, start=int(rows[0]), end=int(rows[-1]),
             start_ns=int(stamps[rows[0]]), end_ns=int(stamps[rows[-1]]),
-            onset_ns=start_ns + int(round(c.t0 * 1e9)),
-            release_ns=start_ns + int(round(c.t1 * 1e9)), grasp_part=grasp_part[c.index]))
+            onset_ns=start_ns + round(c.t0 * 1e9),
+            release_ns=start_ns + round(c.t1 * 1e9), grasp_part=grasp_part[c.index]))
     T_c_part = T_c_parts[final]
     truth = GroundTruth(
         T_camera_hand=T_c_hand, T_camera_part=T_c_part,

@@ -151,7 +151,7 @@ class GroundTruth:
         if self.T_camera_parts is None:
             object.__setattr__(self, "T_camera_parts", self.T_camera_part[None])
         if self.phase is None:
-            object.__setattr__(self, "phase", np.full(n, PHASE_CONTACT))
+            object.__setattr__(self, "phase", np.full(n, PHASE_CONTACT, dtype="<U7"))
         if self.segment_index is None:
             object.__setattr__(self, "segment_index", np.zeros(n, dtype=np.int64))
         if self.undetected is None:
@@ -302,7 +302,7 @@ def load_npz(path: str | Path) -> Demonstration:
                     "T_camera_hand", "landmarks_hand", "landmarks_true", "occluded")})
         truth = GroundTruth(
             joint=final, joints=joints, segments=segments,
-            finger_angles=z["truth_finger_angles"] if "truth_finger_angles" in z else None,
+            finger_angles=z.get("truth_finger_angles"),
             hand_side=str(z["hand_side"]), gap=str(z["gap"]) or None, second_hand=second_truth,
             **{name: z["truth_" + name] for name in _TRUTH_ARRAYS})
         return Demonstration(

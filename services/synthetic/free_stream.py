@@ -1,8 +1,9 @@
 """A hand that never touches anything: waving, pointing, resting and moving about (60 s).
 
 For measuring false contact phases. The hand moves in a workspace box 0.6-0.9 m in front of
-the camera (the palm centre within +-22 cm across, +-12 cm up/down, +-15 cm in depth); episodes follow each other until the
-duration is reached, drawn with probabilities rest 0.3, wave 0.2, point 0.25, move 0.25:
+the camera (the palm centre within +-22 cm across, +-12 cm up/down, +-15 cm in depth);
+episodes follow each other until the duration is reached, drawn with probabilities rest 0.3,
+wave 0.2, point 0.25, move 0.25:
 
 - ``rest``: 1-4 s still (relaxed fingers, an unsupported hand's drift and tremor,
   :data:`services.synthetic.free_motion.REST_TREMOR`);
@@ -19,8 +20,6 @@ contact phase (``segments == ()``, every frame "free"); ``joint`` is a rigid pla
 """
 
 from __future__ import annotations
-
-import zlib
 
 import numpy as np
 from numpy.typing import NDArray
@@ -194,7 +193,7 @@ def generate_free(participant: int, seed: int = 0, duration_s: float = 60.0,
         landmarks_hand=landmarks_h, landmarks_true=lm_c, grasp_points=np.full((n, 3), np.nan),
         joint=none, frame_index=frames.frame_index, occluded=obs.occluded, missing=obs.missing,
         depth_outlier=obs.depth_outlier, swapped=obs.swapped, joints=(none,),
-        T_camera_parts=T_c_part[None], segments=(), phase=np.full(n, "free"),
+        T_camera_parts=T_c_part[None], segments=(), phase=np.full(n, "free", dtype="<U7"),
         segment_index=np.full(n, -1, dtype=np.int64), finger_angles=angles, hand_side=side)
     return Demonstration(
         object_name=FREE_OBJECT_NAME, participant=participant, seed=seed, stamps_ns=stamps,

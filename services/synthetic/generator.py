@@ -45,6 +45,7 @@ import numpy as np
 
 from services.common.se3 import se3_adjoint, se3_exp, so3_exp
 from services.synthetic import camera as cam
+from services.synthetic import compose, second_hand
 from services.synthetic import hand as hd
 from services.synthetic import motion as mo
 from services.synthetic.demonstration import (
@@ -55,19 +56,22 @@ from services.synthetic.demonstration import (
     load_npz,
     save_npz,
 )
+from services.synthetic.free_stream import generate_free
 from services.synthetic.objects import OBJECTS, preset
 from services.synthetic.placement import CAMERA_DISTANCE_M, place_camera, slip
+from services.synthetic.splits import (
+    EVALUATION_SPLIT,
+    FREE_OBJECT,
+    TUNING_OBJECTS,
+    TUNING_SPLIT,
+    check_request,
+)
 
 __all__ = [
     "CAMERA_DISTANCE_M", "EVALUATION_SPLIT", "OBJECTS", "TUNING_OBJECTS", "TUNING_SPLIT",
     "ContactSegment", "Demonstration", "GroundTruth", "JointTruth", "generate", "load_npz",
     "save_npz",
 ]
-
-TUNING_OBJECTS: tuple[str, ...] = ("valve", "tension_belt", "window_lock", "flap_latch")
-TUNING_SPLIT: list[tuple[str, int]] = [(o, p) for o in TUNING_OBJECTS for p in (1, 2)]
-EVALUATION_SPLIT: list[tuple[str, int]] = [(o, 3) for o in OBJECTS]
-
 
 def generate(object_name: str, participant: int, seed: int = 0, *, variant: str = "cut",
              idle_hand: str | None = None, gap: str | None = None, hand: str | None = None,
@@ -85,14 +89,10 @@ def generate(object_name: str, participant: int, seed: int = 0, *, variant: str 
     with probability 0.75). ``duration_scale`` stretches every rest and stroke.
     Object "free" is the hand-only stream of :func:`services.synthetic.free_stream.generate_free`.
     """
-    from services.synthetic import compose, second_hand, splits
-
     if duration_scale <= 0:
         raise ValueError(f"duration_scale must be positive, got {duration_scale}")
-    splits.check_request(object_name, variant, idle_hand, gap, hand)
-    if object_name == splits.FREE_OBJECT:
-        from services.synthetic.free_stream import generate_free
-
+    check_request(object_name, variant, idle_hand, gap, hand)
+    if object_name == FREE_OBJECT:
         demo = generate_free(participant, seed, duration_s=60.0 * duration_scale, hand=hand)
     elif (object_name in OBJECTS and variant == "cut" and gap is None
           and hand in (None, "right")):
