@@ -313,3 +313,52 @@ def load_npz(path: str | Path) -> Demonstration:
                                       height=int(intr[5])),
             variant=str(z["variant"]), second=second,
             **{name: z[name] for name in _STREAM})
+
+
+def cut_to_segment(demo: Demonstration, i: int) -> Demonstration:
+    """The rows of contact phase ``i`` as a demonstration of their own ("cut at grasp and
+    release"): same stream values, same noise, one contact phase over every row.
+
+    ``joint`` becomes phase ``i``'s joint and ``T_camera_part`` / ``grasp_points`` its part and
+    held point; joint values keep their values (``q`` starts where the phase starts, not at 0).
+    """
+    tr = demo.truth
+    seg = tr.segments[i]
+    rows = slice(seg.start, seg.end + 1)
+    m = seg.end - seg.start + 1
+    assert tr.T_camera_parts is not None
+    joints = tuple(JointTruth(type=j.type, axis=j.axis, point=j.point, q=j.q[rows], name=j.name)
+                   for j in tr.joints)
+    T_part = tr.T_camera_parts[seg.joint, rows]
+    inv = np.linalg.inv(T_part)
+    one = ContactSegment(index=0, joint=seg.joint, start=0, end=m - 1, start_ns=seg.start_ns,
+                         end_ns=seg.end_ns, onset_ns=seg.onset_ns, release_ns=seg.release_ns,
+                         grasp_part=seg.grasp_part)
+    sh = tr.second_hand
+    second_truth = None if sh is None else SecondHandTruth(
+        side=sh.side, label_mode=sh.label_mode, T_camera_hand=sh.T_camera_hand[rows],
+        landmarks_hand=sh.landmarks_hand, landmarks_true=sh.landmarks_true[rows],
+        occluded=sh.occluded[rows])
+    truth = GroundTruth(
+        T_camera_hand=tr.T_camera_hand[rows], T_camera_part=T_part,
+        T_part_hand=inv @ tr.T_camera_hand[rows], T_camera_object=tr.T_camera_object,
+        landmarks_hand=tr.landmarks_hand[rows], landmarks_true=tr.landmarks_true[rows],
+        grasp_points=tr.segment_grasp_points(i), joint=joints[seg.joint],
+        frame_index=tr.frame_index[rows], occluded=tr.occluded[rows], missing=tr.missing[rows],
+        depth_outlier=tr.depth_outlier[rows], swapped=tr.swapped[rows], joints=joints,
+        T_camera_parts=tr.T_camera_parts[:, rows], segments=(one,),
+        phase=np.full(m, PHASE_CONTACT, dtype="<U7"), segment_index=np.zeros(m, np.int64),
+        finger_angles=None if tr.finger_angles is None else tr.finger_angles[rows],
+        hand_side=tr.hand_side, undetected=None if tr.undetected is None else tr.undetected[rows],
+        gap=tr.gap, second_hand=second_truth)
+    s = demo.second
+    second = None if s is None else HandTrack(
+        present=s.present[rows], labels=s.labels[rows], score=s.score[rows],
+        points=s.points[rows], visibility=s.visibility[rows], pixels=s.pixels[rows])
+    assert demo.present is not None and demo.labels is not None
+    return Demonstration(
+        object_name=demo.object_name, participant=demo.participant, seed=demo.seed,
+        stamps_ns=demo.stamps_ns[rows], points=demo.points[rows],
+        visibility=demo.visibility[rows], pixels=demo.pixels[rows], handedness=demo.handedness,
+        score=demo.score[rows], truth=truth, intrinsics=demo.intrinsics, variant="cut",
+        present=demo.present[rows], labels=demo.labels[rows], second=second)

@@ -48,8 +48,8 @@ def _check_phases(d: Demonstration) -> None:
         np.testing.assert_array_equal(np.diff(j.q)[still], 0.0)
 
 
-@pytest.mark.parametrize("name", ["key", "window_lock", "cabinet_door", "kitchen_drawer",
-                                  "stove_knob", "hold_knob", "sliding_door", "oven_door"])
+@pytest.mark.parametrize("name", [*splits.OBJECTS_BY_SPLIT["paper"],
+                                  *splits.OBJECTS_BY_SPLIT["household"]])
 def test_whole_demonstration_reaches_grasps_manipulates_releases_withdraws(name: str) -> None:
     d = generate(name, 6, 2, variant="whole")
     tr = d.truth
@@ -224,3 +224,21 @@ def test_free_stream_never_touches_anything() -> None:
     assert np.ptp(ap) > 0.02  # the fingers change posture
     with pytest.raises(ValueError, match="free stream"):
         generate("free", 6, 0, idle_hand="same")
+
+
+def test_cut_to_segment_is_the_contact_of_the_same_demonstration() -> None:
+    from services.synthetic.demonstration import cut_to_segment
+
+    d = generate("cabinet_door", 6, 4, variant="sequence", idle_hand="same")
+    for i, s in enumerate(d.truth.segments):
+        c = cut_to_segment(d, i)
+        rows = slice(s.start, s.end + 1)
+        assert len(c) == s.end - s.start + 1 and c.variant == "cut"
+        np.testing.assert_array_equal(c.points, d.points[rows])
+        np.testing.assert_array_equal(c.stamps_ns, d.stamps_ns[rows])
+        assert c.truth.joint.name == d.truth.segment_joint(i).name
+        np.testing.assert_allclose(c.truth.grasp_points, d.truth.segment_grasp_points(i))
+        np.testing.assert_allclose(c.truth.T_camera_hand, c.truth.T_camera_part
+                                   @ c.truth.T_part_hand, atol=1e-9)
+        assert np.all(c.truth.phase == "contact") and len(c.truth.segments) == 1
+        assert c.second is not None and len(c.detections(0)) == 2
