@@ -4,7 +4,8 @@ Who it is: with probability 0.7 the demonstrator's other hand (the opposite side
 shape), otherwise a second person's hand (either side, another participant's shape). It rests
 in a relaxed posture, back of the hand towards the camera (within ~60 deg), somewhere in the
 lower 70 % of the image at the depth of the demonstration +15/-25 cm, at least 12 cm from every
-landmark of the manipulating hand in every frame; it never moves.
+landmark of the manipulating hand in every frame (else the farthest of 300 candidate places);
+it never moves.
 
 Its detections come from the same observation model as the manipulating hand (occlusion level
 0.05: nothing in front of it), plus a slowly varying score offset (Ornstein-Uhlenbeck, 0.04,
