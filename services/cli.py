@@ -140,7 +140,12 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
         rig, remap = args.rig or "default", None
         source = f"the synthetic {args.synthetic} demonstration"
-        messages = synthetic_recording(args.synthetic, args.participant, args.seed, rig)
+        try:
+            messages = synthetic_recording(args.synthetic, args.participant, args.seed, rig,
+                                           variant=args.variant, idle_hand=args.idle_hand,
+                                           gap=args.gap, hand=args.hand)
+        except ValueError as exc:  # an unsupported combination; the message names it
+            raise UserError(f"--synthetic {args.synthetic}: {exc}") from None
     elif args.file:
         if args.save:
             raise UserError("--save works with --synthetic only (FILE is a recording already)")
@@ -352,8 +357,19 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     p.add_argument("--synthetic", metavar="OBJECT", type=object_name,
                    help="generate a synthetic demonstration of this object (e.g. key)")
     p.add_argument("--participant", type=participant_id, default=3,
-                   help="with --synthetic: participant 1..3 (default 3)")
+                   help="with --synthetic: participant 1..7 (1-3 paper, 4-7 household; default 3)")
     p.add_argument("--seed", type=non_negative_int, default=0)
+    from services.synthetic.splits import GAPS, IDLE_HAND_LABELS, VARIANTS
+
+    p.add_argument("--variant", choices=VARIANTS, default="cut",
+                   help="with --synthetic: cut (manipulation only, default), whole (reach, grasp, "
+                        "manipulate, release, withdraw), sequence (two joints), regrasp (two "
+                        "strokes)")
+    p.add_argument("--idle-hand", choices=IDLE_HAND_LABELS,
+                   help="with --synthetic: an idle second hand in view, labelled like this")
+    p.add_argument("--gap", choices=GAPS, help="with --synthetic: a tracking gap of 0.3-1.5 s")
+    p.add_argument("--hand", choices=("left", "right"),
+                   help="with --synthetic: the manipulating hand (default: the participant's)")
     p.add_argument("--save", type=Path, help="with --synthetic: write the MCAP file and exit")
     p.add_argument("--wait-for", action="append", metavar="SERVICE", type=service_name,
                    help="wait for this service's liveliness token before publishing")

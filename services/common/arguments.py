@@ -76,9 +76,11 @@ def service_name(text: str) -> str:
 
 
 def object_name(text: str) -> str:
-    """A synthetic object preset (``key``, ``window_lock``, ...)."""
-    from services.synthetic.objects import preset
+    """A synthetic object preset of any split (``key``, ``cabinet_door``, ...) or ``free``."""
+    from services.synthetic.splits import FREE_OBJECT, preset
 
+    if text == FREE_OBJECT:
+        return text
     try:
         preset(text)
     except ValueError as exc:  # its message lists the known objects
@@ -87,8 +89,8 @@ def object_name(text: str) -> str:
 
 
 def participant_id(text: str) -> int:
-    """A participant of the synthetic demonstrations (the paper's 1..3)."""
-    from services.synthetic.generator import PARTICIPANTS
+    """A participant of the synthetic demonstrations (1..3 the paper's, 4..7 household)."""
+    from services.synthetic.splits import PARTICIPANTS
 
     value = _int(text)
     if value not in PARTICIPANTS:

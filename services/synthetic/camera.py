@@ -222,16 +222,20 @@ class ObservationModel:
         z = np.asarray(z, dtype=float)
         return self.skin_factor * (self.depth_sigma_a_m + self.depth_sigma_b_per_m * z * z)
 
-    def occlusion_probability(self, level: float, cos_dorsal: Array) -> Array:
+    def occlusion_probability(self, level: float | Array, cos_dorsal: Array) -> Array:
         """Marginal probability (..., 21) that each landmark is hidden.
 
-        ``level`` is the object's occlusion level, ``cos_dorsal`` (...) the cosine between the
-        back-of-hand normal and the direction from the hand to the camera.
+        ``level`` is the object's occlusion level (a scalar, or one per frame (...)),
+        ``cos_dorsal`` (...) the cosine between the back-of-hand normal and the direction from
+        the hand to the camera.
         """
         w = _per_type3(self.occlusion_weights)
         c = np.asarray(cos_dorsal, dtype=float)[..., None]
-        p = self.self_occlusion + level * (w[:, 0] + w[:, 1] * np.maximum(c, 0.0)
-                                           + w[:, 2] * np.maximum(-c, 0.0))
+        lv = np.asarray(level, dtype=float)
+        if lv.ndim:
+            lv = lv[..., None]
+        p = self.self_occlusion + lv * (w[:, 0] + w[:, 1] * np.maximum(c, 0.0)
+                                        + w[:, 2] * np.maximum(-c, 0.0))
         return np.clip(p, 0.0, self.max_occlusion_probability)
 
 
@@ -277,7 +281,7 @@ def _bone_directions(pixels_true: Array) -> Array:
 
 
 def observe_landmarks(rng: np.random.Generator, landmarks_c: Array, R_c_hand: Array, t: Array,
-                      occlusion_level: float, radii: Array, palm_length_m: float,
+                      occlusion_level: float | Array, radii: Array, palm_length_m: float,
                       K: Intrinsics = AZURE_KINECT_COLOR_720P,
                       model: ObservationModel | None = None) -> Observation:
     """Simulate the detector on true landmarks (module docstring, steps 1-6).
@@ -287,7 +291,8 @@ def observe_landmarks(rng: np.random.Generator, landmarks_c: Array, R_c_hand: Ar
     landmarks_c : (N, 21, 3) true landmark (joint centre) positions in the camera frame [m].
     R_c_hand : (N, 3, 3) hand orientation in the camera frame (column 2 = back-of-hand normal).
     t : (N,) capture times [s], increasing.
-    occlusion_level : the object's occlusion level in [0, 1].
+    occlusion_level : the object's occlusion level in [0, 1], or (N,) one per frame (a free
+        hand away from the object is hidden less).
     radii : (21,) half-thickness of the digit at each landmark [m].
     palm_length_m : wrist-to-middle-MCP distance of this hand [m].
     """

@@ -2,8 +2,8 @@
 
 Hand frame ``h`` (all positions here, metres): origin at the wrist landmark (0), **x** from the
 wrist towards the middle-finger MCP (distal), **y** towards the thumb (radial), **z = x * y**
-(dorsal, out of the back of the hand). Only right hands are generated; flexion bends fingers
-towards -z (the palm side).
+(dorsal, out of the back of the hand). Hands are built as right hands; flexion bends fingers
+towards -z (the palm side). A left hand is the mirror image (``services.synthetic.postures``).
 
 Landmark order is MediaPipe's (docs/protocol.md, HandLandmarks): 0 wrist; thumb 1 CMC, 2 MCP,
 3 IP, 4 tip; index 5-8, middle 9-12, ring 13-16, pinky 17-20 (MCP, PIP, DIP, tip).
@@ -224,6 +224,10 @@ _POSTURES_DEG: dict[str, tuple[tuple[float, float, float, float], ...]] = {
     # Lateral (key) pinch: thumb pad on the radial side of the curled index finger.
     "key_pinch": ((15.0, 10.0, 20.0, 20.0), (0.0, 55.0, 80.0, 40.0), (0.0, 65.0, 85.0, 45.0),
                   (-2.0, 68.0, 85.0, 45.0), (-4.0, 70.0, 85.0, 45.0)),
+    # Hook: fingers curled at PIP/DIP around a bar or into a recess, knuckles almost straight;
+    # the thumb rests alongside the index metacarpal (not opposed).
+    "hook": ((10.0, 5.0, 10.0, 10.0), (2.0, 15.0, 85.0, 50.0), (0.0, 15.0, 88.0, 50.0),
+             (-2.0, 18.0, 88.0, 50.0), (-4.0, 22.0, 85.0, 50.0)),
 }
 
 _THUMB_BOUNDS_DEG = ((-10.0, 80.0), (-30.0, 90.0), (-10.0, 75.0), (-20.0, 90.0))
@@ -239,10 +243,13 @@ def thumb_target(landmarks: Array, grasp_type: GraspType, shape: HandShape) -> A
 
     pinch: 1.4 cm from the index tip (pads touching); tripod: the same from the index/middle
     tip midpoint; key_pinch: 1.5 cm radial of the index middle phalanx; power: over the index
-    middle phalanx on the palm side (thumb wrapped around the bar). Offsets scale with HL.
+    middle phalanx on the palm side (thumb wrapped around the bar); hook: 2 cm radial of the
+    index PIP, slightly proximal (thumb resting alongside, not opposed). Offsets scale with HL.
     """
     s = shape.hand_length_m / 0.19
     lm = landmarks
+    if grasp_type == "hook":
+        return lm[6] + s * np.array([-0.01, 0.018, -0.008])
     if grasp_type == "pinch":
         return lm[8] + s * np.array([-0.005, 0.010, -0.008])
     if grasp_type == "tripod":
@@ -283,9 +290,13 @@ def grasp_point(landmarks: Array, grasp_type: GraspType, shape: HandShape) -> Ar
     pinch: midpoint of thumb and index tips; tripod: centroid of thumb, index and middle tips;
     key_pinch: midpoint of the thumb tip and the index middle phalanx; power: centre of the
     cylinder held between palm and curled fingers (mean of index..ring MCPs and PIPs, 0.06 HL
-    towards the palm).
+    towards the palm); hook: the crook of the curled fingers (mean of index..ring PIPs and DIPs,
+    0.05 HL towards the palm).
     """
     lm = landmarks
+    if grasp_type == "hook":
+        crook = lm[[6, 7, 10, 11, 14, 15]].mean(axis=0)
+        return crook - np.array([0.0, 0.0, 0.05 * shape.hand_length_m])
     if grasp_type == "pinch":
         return 0.5 * (lm[4] + lm[8])
     if grasp_type == "tripod":
@@ -315,6 +326,13 @@ class Participant:
     # Slip of the grasp on the part over a full stroke: rotation [rad] and translation [m].
     slip_rotation_rad: float
     slip_translation_m: float
+    # The hand this participant uses by preference ("left" / "right").
+    dominant_hand: str = "right"
+
+
+# Left-handed participants (ids >= 4 only: the paper's participants 1-3 demonstrate with their
+# right hands, docs/synthetic.md#participants).
+LEFT_HANDED_PARTICIPANTS = frozenset({5, 7, 9})
 
 
 def participant(participant_id: int) -> Participant:
@@ -336,6 +354,7 @@ def participant(participant_id: int) -> Participant:
         flex_amplitude_rad=float(np.deg2rad(rng.uniform(2.0, 5.0))),
         slip_rotation_rad=float(np.deg2rad(rng.uniform(1.0, 4.0))),
         slip_translation_m=float(rng.uniform(0.001, 0.003)),
+        dominant_hand="left" if participant_id in LEFT_HANDED_PARTICIPANTS else "right",
     )
 
 

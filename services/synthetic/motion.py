@@ -150,3 +150,50 @@ def sample_frame_times(rng: np.random.Generator, duration_s: float,
     keep[0] = True
     idx = np.flatnonzero(keep).astype(np.int64)
     return FrameTimes(frame_index=idx, t=t[idx], n_nominal=n)
+
+
+def shifted(plan: ArticulationPlan, dt_s: float) -> ArticulationPlan:
+    """``plan`` delayed by ``dt_s`` [s] (same joint values)."""
+    return ArticulationPlan(tuple(Segment(s.t0 + dt_s, s.t1 + dt_s, s.q0, s.q1)
+                                  for s in plan.segments))
+
+
+def plan_strokes(rng: np.random.Generator, q_start: float, targets: tuple[float, ...],
+                 q_range: float, stroke_duration_s: float, *,
+                 first_rest_s: tuple[float, float] = (0.4, 1.0),
+                 between_rest_s: tuple[float, float] = (0.2, 0.6),
+                 last_rest_s: tuple[float, float] = (0.3, 0.8),
+                 duration_scale: float = 1.0) -> ArticulationPlan:
+    """A rest, min-jerk strokes from ``q_start`` through ``targets`` with rests between, a rest.
+
+    Strokes last as in :func:`plan_articulation` (``stroke_duration_s`` for a full ``q_range``,
+    shorter for shorter strokes, times U(0.85, 1.2) and ``duration_scale``). Starts at t = 0.
+    """
+    if q_range <= 0.0 or stroke_duration_s <= 0.0 or duration_scale <= 0.0:
+        raise ValueError("range, stroke duration and duration scale must be positive")
+    segs: list[Segment] = []
+    t = 0.0
+    q = q_start
+
+    def rest(bounds: tuple[float, float]) -> None:
+        nonlocal t
+        d = rng.uniform(*bounds) * duration_scale
+        segs.append(Segment(t, t + d, q, q))
+        t += d
+
+    rest(first_rest_s)
+    for i, target in enumerate(targets):
+        if i:
+            rest(between_rest_s)
+        frac = abs(target - q) / q_range
+        d = stroke_duration_s * (0.35 + 0.65 * frac) * rng.uniform(0.85, 1.2) * duration_scale
+        segs.append(Segment(t, t + d, q, target))
+        t += d
+        q = target
+    rest(last_rest_s)
+    return ArticulationPlan(tuple(segs))
+
+
+def rest_plan(q: float, duration_s: float) -> ArticulationPlan:
+    """``q`` held for ``duration_s`` [s] from t = 0 (a still hold)."""
+    return ArticulationPlan((Segment(0.0, duration_s, q, q),))

@@ -58,14 +58,14 @@ nominal min-jerk durations of one full stroke before participant/demonstration s
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Literal
 
 import numpy as np
 from numpy.typing import NDArray
 
-JointType = Literal["prismatic", "revolute"]
-GraspType = Literal["pinch", "tripod", "key_pinch", "power"]
+JointType = Literal["prismatic", "revolute", "rigid"]
+GraspType = Literal["pinch", "tripod", "key_pinch", "power", "hook"]
 Vec3 = tuple[float, float, float]
 
 
@@ -97,17 +97,34 @@ class ObjectPreset:
     view_elevation_deg: tuple[float, float]
     view_azimuth_deg: tuple[float, float]
     description: str
+    # A re-grasp after a release goes back to the first grasp's place on the object (turning a
+    # knob, valve or key in several strokes) instead of the same place on the moved handle.
+    ratchet: bool = False
+    # Camera distance from the object origin [m] (0.4-1.0 m for the paper's small objects).
+    camera_distance_m: tuple[float, float] = (0.4, 1.0)
+    # Relative spread of the object's size per demonstration: ``point`` and ``grasp`` scale by
+    # U(1 - s, 1 + s) (e.g. the handle of a cabinet door 25-35 cm from its hinge).
+    scale_spread: float = 0.0
+    # Duration of a still hold of a rigid ("fixed handle") object [s].
+    hold_s: tuple[float, float] = (3.0, 5.0)
 
     def __post_init__(self) -> None:
         a = np.asarray(self.axis, dtype=float)
         if abs(float(np.linalg.norm(a)) - 1.0) > 1e-9:
             raise ValueError(f"{self.name}: axis {self.axis} is not unit length")
-        if self.joint_type not in ("prismatic", "revolute"):
+        if self.joint_type not in ("prismatic", "revolute", "rigid"):
             raise ValueError(f"{self.name}: unknown joint type {self.joint_type!r}")
         if not 0.0 <= self.occlusion <= 1.0:
             raise ValueError(f"{self.name}: occlusion {self.occlusion} outside [0, 1]")
-        if self.range_nominal <= 0.0 or not 0.0 <= self.range_spread < 1.0:
+        if self.joint_type == "rigid":
+            if self.range_nominal != 0.0 or not 0.0 < self.hold_s[0] <= self.hold_s[1]:
+                raise ValueError(f"{self.name}: a rigid object has range 0 and a hold duration")
+        elif self.range_nominal <= 0.0 or not 0.0 <= self.range_spread < 1.0:
             raise ValueError(f"{self.name}: bad range {self.range_nominal} +- {self.range_spread}")
+        if not 0.0 < self.camera_distance_m[0] <= self.camera_distance_m[1]:
+            raise ValueError(f"{self.name}: bad camera distance {self.camera_distance_m}")
+        if not 0.0 <= self.scale_spread < 0.5:
+            raise ValueError(f"{self.name}: scale spread {self.scale_spread} outside [0, 0.5)")
         d = np.asarray(self.hand_distal, dtype=float)
         r = np.asarray(self.hand_radial, dtype=float)
         if np.linalg.norm(np.cross(d, r)) < 1e-3 * np.linalg.norm(d) * np.linalg.norm(r):
@@ -116,6 +133,8 @@ class ObjectPreset:
     def twist_object(self) -> NDArray[np.float64]:
         """Unit joint twist ``[v, w]`` (6,) in the object frame; ``exp(q * xi)`` moves the part."""
         a = np.asarray(self.axis, dtype=float)
+        if self.joint_type == "rigid":
+            return np.zeros(6)
         if self.joint_type == "prismatic":
             return np.concatenate([a, np.zeros(3)])
         p = np.asarray(self.point, dtype=float)
@@ -129,6 +148,34 @@ class ObjectPreset:
         y = y - (y @ x) * x
         y = y / np.linalg.norm(y)
         return np.stack([x, y, np.cross(x, y)], axis=1)
+
+
+def mirrored(p: ObjectPreset) -> ObjectPreset:
+    """The mirror image of ``p`` across its x = 0 plane (what a left hand demonstrates).
+
+    Positions and directions map by ``S = diag(-1, 1, 1)``; a revolute axis is a pseudovector and
+    maps to ``-S a``, so the same ``q`` gives the mirrored motion (``S exp(q xi) S``). The hand's
+    distal and radial directions map by ``S`` as well: the right-hand grasp becomes its mirrored
+    left-hand grasp (docs/synthetic.md#left-hands).
+    """
+    def s(v: Vec3) -> Vec3:
+        return (-v[0], v[1], v[2])
+
+    axis = s(p.axis)
+    if p.joint_type == "revolute":
+        axis = (-axis[0], -axis[1], -axis[2])
+    el, az = p.view_elevation_deg, p.view_azimuth_deg
+    return replace(p, axis=axis, point=s(p.point), grasp=s(p.grasp), hand_distal=s(p.hand_distal),
+                   hand_radial=s(p.hand_radial), view_elevation_deg=el,
+                   view_azimuth_deg=(-az[1], -az[0]))
+
+
+def scaled(p: ObjectPreset, factor: float) -> ObjectPreset:
+    """``p`` with its joint point and grasp point scaled by ``factor`` about the object origin."""
+    def s(v: Vec3) -> Vec3:
+        return (factor * v[0], factor * v[1], factor * v[2])
+
+    return replace(p, point=s(p.point), grasp=s(p.grasp))
 
 
 def _unit(*v: float) -> Vec3:
@@ -172,7 +219,7 @@ PRESETS: dict[str, ObjectPreset] = {
             stroke_duration_s=2.0, view_elevation_deg=_WALL[0], view_azimuth_deg=_WALL[1],
             description="roller blind pulled down by its bottom bar"),
         ObjectPreset(
-            name="valve", joint_type="revolute", axis=(0.0, 1.0, 0.0),
+            name="valve", joint_type="revolute", axis=(0.0, 1.0, 0.0), ratchet=True,
             point=(0.0, 0.06, 0.0), range_nominal=1.2, range_spread=0.2,
             grasp=(0.035, 0.06, 0.035), grasp_type="power",
             hand_distal=_unit(-0.4, -1.0, -0.4), hand_radial=_unit(1.0, 0.0, -1.0),
@@ -208,7 +255,7 @@ PRESETS: dict[str, ObjectPreset] = {
             stroke_duration_s=1.4, view_elevation_deg=_TABLE[0], view_azimuth_deg=_TABLE[1],
             description="travel-mug lid flipped open about its rear hinge"),
         ObjectPreset(
-            name="key", joint_type="revolute", axis=(0.0, 1.0, 0.0),
+            name="key", joint_type="revolute", axis=(0.0, 1.0, 0.0), ratchet=True,
             point=(0.0, 0.0, 0.0), range_nominal=3.1, range_spread=0.1,
             grasp=(0.006, 0.035, 0.0), grasp_type="key_pinch",
             hand_distal=(0.0, -1.0, 0.0), hand_radial=(0.0, 0.0, 1.0), occlusion=0.45,

@@ -46,3 +46,24 @@ def test_save_as_mcap(procs: Processes, tmp_path: Path) -> None:
         else:
             assert before <= stamps[0] <= after
             np.testing.assert_array_equal(np.diff(stamps), np.diff(demo.stamps_ns))
+
+
+def test_messages_carry_both_hands_and_empty_frames() -> None:
+    demo = generate("slide_latch", 6, 2, variant="whole", gap="dropout", idle_hand="same")
+    msgs = landmark_messages(demo)
+    assert [m.stamp_ns for m in msgs] == demo.stamps_ns.tolist()
+    assert demo.present is not None and demo.second is not None
+    for i in (0, int(np.flatnonzero(~demo.present)[0]), len(msgs) - 1):
+        back = HandLandmarks.from_msgpack(msgs[i].to_msgpack())
+        want = demo.detections(i)
+        assert [h.handedness for h in back.hands] == [h.handedness for h in want]
+        assert len(back.hands) == int(demo.present[i]) + 1
+        for got, exp in zip(back.hands, want, strict=True):
+            np.testing.assert_array_equal(got.points, exp.points)
+            assert got.score == float(exp.score)
+    # Both hands report the same label here ("same"), scores decide the order.
+    two = [HandLandmarks.from_msgpack(m.to_msgpack()) for m in msgs if len(m.hands) == 2]
+    assert two and all(m.hands[0].score >= m.hands[1].score for m in two)
+    alone = generate("slide_latch", 6, 2, variant="whole", gap="dropout")
+    empty = [m for m in landmark_messages(alone) if not m.hands]
+    assert len(empty) == int((~alone.present).sum()) > 0
