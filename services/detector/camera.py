@@ -1,7 +1,10 @@
 """Camera service: an RGB-D source published as ``RgbdFrame`` (``handkse camera``).
 
-``--kinect`` (Azure Kinect through pyk4a: colour-registered depth, factory intrinsics) or
-``--folder DIR`` (see :mod:`services.detector.sources` for the layout). Frames go to
+One source: ``--realsense [--serial S]`` (Intel RealSense through pyrealsense2), ``--kinect``
+(Azure Kinect, or Orbbec Femto through its K4A wrapper, through pyk4a), a recording (``--bag
+FILE`` from a RealSense, ``--kinect-recording FILE.mkv`` from an Azure Kinect or Femto) or
+``--folder DIR`` (see :mod:`services.detector.sources` for the layout); every camera publishes
+colour-registered depth and the colour camera's intrinsics (docs/cameras.md). Frames go to
 ``handkse/{rig}/camera/rgbd`` with JPEG colour and 16-bit depth (raw by default: 1.8 MB per
 frame, but no PNG work on either side, which costs ~25-50 ms to encode and ~15 ms to decode per
 1280x720 ToF frame; ``--depth-encoding png16`` for slow links), congestion control DROP
@@ -64,6 +67,8 @@ def run(bus: BusLike, keys: Keys, source: FrameSource, stop: threading.Event, *,
             published[0] = publish_frames(service, source, stop, jpeg_quality=jpeg_quality,
                                           depth_encoding=depth_encoding, max_frames=max_frames,
                                           save=save)
+        except SourceUnavailable as exc:  # a camera that stopped delivering: say what
+            log.error("camera source failed: %s", exc)
         except Exception:
             log.exception("camera source failed")
         finally:
@@ -81,24 +86,65 @@ def run(bus: BusLike, keys: Keys, source: FrameSource, stop: threading.Event, *,
     return published[0]
 
 
+def frame_size(text: str) -> tuple[int, int]:
+    """``"WxH"`` -> (width, height) in pixels, both positive."""
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT, e.g. 1280x720, got {text!r}"
+                                         ) from None
+    if w <= 0 or h <= 0:
+        raise argparse.ArgumentTypeError(f"width and height must be positive, got {text!r}")
+    return w, h
+
+
+def rate_value(text: str) -> float:
+    """A playback rate: 1 = recorded pace, 0 = as fast as the consumer takes frames."""
+    try:
+        rate = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not rate >= 0.0:
+        raise argparse.ArgumentTypeError(f"must be >= 0 (0 = as fast as possible), got {text}")
+    return rate
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Arguments of ``handkse camera`` (besides --rig, --config, --set and the zenoh ones)."""
     which = parser.add_mutually_exclusive_group(required=True)
+    which.add_argument("--realsense", action="store_true",
+                       help="Intel RealSense D400 camera (needs the realsense extra: pyrealsense2)")
+    which.add_argument("--bag", metavar="FILE",
+                       help="RealSense recording, .bag or .db3 (realsense extra)")
     which.add_argument("--kinect", action="store_true",
-                       help="Azure Kinect (needs the kinect extra: pyk4a + libk4a)")
+                       help="Azure Kinect or Orbbec Femto (needs the kinect extra: pyk4a + libk4a)")
+    which.add_argument("--kinect-recording", metavar="FILE.mkv",
+                       help="Azure Kinect / Femto recording from k4arecorder (kinect extra)")
     which.add_argument("--folder", metavar="DIR", help="frame folder (color/, depth/, "
                                                        "intrinsics.json, timestamps.txt)")
-    parser.add_argument("--rate", type=float, default=1.0,
-                        help="folder: replay speed (1 = recorded pace, 0 = as fast as possible)")
-    parser.add_argument("--loop", action="store_true", help="folder: replay forever")
-    parser.add_argument("--fps", type=int, default=30, choices=(5, 15, 30),
-                        help="Kinect frame rate; folder pace when it has no timestamps.txt")
+    parser.add_argument("--serial", metavar="S",
+                        help="RealSense: the camera's serial number (default: the first found)")
+    parser.add_argument("--color-size", type=frame_size, default=(1280, 720), metavar="WxH",
+                        help="RealSense colour resolution (default 1280x720)")
+    parser.add_argument("--depth-size", type=frame_size, default=(848, 480), metavar="WxH",
+                        help="RealSense depth resolution before alignment (default 848x480)")
+    parser.add_argument("--rate", type=rate_value, default=1.0,
+                        help="recordings and folder: playback speed (1 = recorded pace, 0 = "
+                             "every frame as fast as it is taken)")
+    parser.add_argument("--loop", action="store_true",
+                        help="recordings and folder: play forever (stamps keep increasing)")
+    parser.add_argument("--keep-stamps", action="store_true",
+                        help="recordings: keep the recorded frame times (default: the first "
+                             "frame is stamped with the host time at start)")
+    parser.add_argument("--fps", type=int, default=30, choices=(5, 6, 15, 30, 60, 90),
+                        help="camera frame rate (Kinect: 5, 15, 30); folder pace without "
+                             "timestamps.txt")
     parser.add_argument("--kinect-device", type=int, default=0, help="Azure Kinect index")
     parser.add_argument("--depth-mode", default="wfov_binned",
                         choices=("wfov_binned", "nfov_unbinned", "nfov_binned", "wfov_unbinned"),
                         help="Kinect depth mode (default wfov_binned: 0.25-2.88 m)")
     parser.add_argument("--no-undistort", action="store_true",
-                        help="Kinect: publish the raw (distorted) images")
+                        help="publish the images with the lens distortion the camera has")
     parser.add_argument("--jpeg-quality", type=int, default=90)
     parser.add_argument("--depth-encoding", choices=("u16", "png16"), default="u16",
                         help="raw 16-bit depth (default) or PNG16 (smaller, slower)")
@@ -109,6 +155,34 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--wait-timeout", type=float, default=30.0)
 
 
+def open_camera(args: argparse.Namespace) -> FrameSource:
+    """The source the arguments name, opened; :class:`SourceUnavailable` or ``ValueError`` say
+    why not. Each SDK is imported here, only for its own source."""
+    if args.serial is not None and not args.realsense:
+        raise SourceUnavailable("--serial selects a RealSense camera: use it with --realsense")
+    if args.realsense:
+        from services.detector.cameras.realsense import RealSenseSource
+
+        return RealSenseSource(serial=args.serial, color_size=args.color_size,
+                               depth_size=args.depth_size, fps=args.fps,
+                               undistort=not args.no_undistort)
+    if args.bag:
+        from services.detector.cameras.realsense_recording import RealSenseRecording
+
+        return RealSenseRecording(args.bag, rate=args.rate, loop=args.loop,
+                                  undistort=not args.no_undistort, keep_stamps=args.keep_stamps)
+    if args.kinect_recording:
+        from services.detector.cameras.kinect_recording import KinectRecordingSource
+
+        return KinectRecordingSource(args.kinect_recording, rate=args.rate, loop=args.loop,
+                                     undistort=not args.no_undistort,
+                                     keep_stamps=args.keep_stamps)
+    return open_source("kinect" if args.kinect else f"folder:{args.folder}",
+                       rate=args.rate, loop=args.loop, device_id=args.kinect_device,
+                       depth_mode=args.depth_mode, fps=args.fps,
+                       undistort=not args.no_undistort)
+
+
 def main(args: argparse.Namespace) -> int:
     """``handkse camera``: 0 when the source ended or was stopped, 2 when it cannot open."""
     from services.common.bus import Bus, options_from_args, wait_for_services
@@ -116,10 +190,7 @@ def main(args: argparse.Namespace) -> int:
 
     keys = Keys(args.rig)
     try:
-        source = open_source("kinect" if args.kinect else f"folder:{args.folder}",
-                             rate=args.rate, loop=args.loop, device_id=args.kinect_device,
-                             depth_mode=args.depth_mode, fps=args.fps,
-                             undistort=not args.no_undistort)
+        source = open_camera(args)
     except (SourceUnavailable, ValueError) as exc:
         print(f"handkse camera: {exc}", file=sys.stderr, flush=True)
         return 2
@@ -144,6 +215,9 @@ def main(args: argparse.Namespace) -> int:
         if save is not None:
             save.close()
     print(f"camera published {n} frames", flush=True)
+    dropped = getattr(source, "dropped", None)
+    if dropped:  # e.g. frames the SDK's syncer paired twice, captures with one image only
+        log.info("camera skipped %s", ", ".join(f"{count} {why}" for why, count in dropped.items()))
     return 0
 
 

@@ -261,7 +261,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Arguments of ``handkse detector`` (besides --rig, --config, --set and the zenoh ones)."""
     parser.add_argument("--source", metavar="SPEC",
                         help="read frames in this process instead of subscribing to "
-                             "handkse/{rig}/camera/rgbd: 'kinect' or 'folder:DIR'")
+                             "handkse/{rig}/camera/rgbd: 'kinect', 'realsense[:SERIAL]', "
+                             "'bag:FILE', 'kinect-recording:FILE' or 'folder:DIR'")
     parser.add_argument("--rate", type=float, default=1.0,
                         help="folder source: replay speed (1 = recorded pace, 0 = every frame "
                              "as fast as possible)")

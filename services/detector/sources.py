@@ -1,5 +1,8 @@
 """RGB-D frame sources (Azure Kinect, a folder) and the RgbdFrame image codec.
 
+RealSense cameras and recordings (RealSense ``.bag``/``.db3``, Azure Kinect ``.mkv``) are in
+:mod:`services.detector.cameras`; :func:`open_source` opens any of them.
+
 A source yields :class:`CapturedFrame` (BGR colour, raw 16-bit depth registered to the colour
 image, intrinsics of the colour camera) and is closed after use (``with``). Sources:
 
@@ -43,6 +46,7 @@ from services.common.protocol import (
     ProtocolError,
     RgbdFrame,
 )
+from services.detector.cameras.lens import LensDistortion, Undistorter
 
 log = logging.getLogger(__name__)
 
@@ -362,10 +366,10 @@ class KinectSource:
         self.intrinsics = CameraIntrinsics(fx=float(K[0, 0]), fy=float(K[1, 1]),
                                            cx=float(K[0, 2]), cy=float(K[1, 2]),
                                            width=1280, height=720)
-        self._maps: tuple[Any, Any] | None = None
-        if undistort:  # keep K: the published intrinsics describe the undistorted image
-            m1, m2 = cv2.initUndistortRectifyMap(K, dist, None, K, (1280, 720), cv2.CV_16SC2)
-            self._maps = (m1, m2)
+        # keeps K: the published intrinsics describe the undistorted image
+        self._undistorter = Undistorter(self.intrinsics,
+                                        LensDistortion("opencv", tuple(float(c) for c in dist)),
+                                        enabled=undistort)
         self._timeout_ms = int(timeout_s * 1000)
         self._closed = threading.Event()
         self._lock = threading.Lock()
@@ -387,11 +391,8 @@ class KinectSource:
                     origin = (device_us, time.time_ns())
                 # the device clock is steady; anchor it to the wall clock once
                 stamp = origin[1] + (device_us - origin[0]) * 1000
-                bgr = np.ascontiguousarray(color[:, :, :3])
-                depth = np.asarray(depth, np.uint16)
-                if self._maps is not None:
-                    bgr = cv2.remap(bgr, *self._maps, cv2.INTER_LINEAR)
-                    depth = cv2.remap(depth, *self._maps, cv2.INTER_NEAREST)
+                bgr, depth = self._undistorter.apply(np.ascontiguousarray(color[:, :, :3]),
+                                                     np.asarray(depth, np.uint16))
                 yield CapturedFrame(stamp_ns=stamp, color_bgr=bgr, depth=depth,
                                     depth_scale_m=0.001, intrinsics=self.intrinsics)
         finally:
@@ -420,10 +421,30 @@ class KinectSource:
 
 def open_source(spec: str, *, rate: float = 1.0, loop: bool = False, device_id: int = 0,
                 depth_mode: str = "wfov_binned", fps: int = 30, undistort: bool = True
-                ) -> FolderSource | KinectSource:
-    """``"kinect"`` or ``"folder:DIR"`` (or just ``DIR``) -> an open source."""
+                ) -> FrameSource:
+    """An open source: ``"kinect"``, ``"realsense"`` or ``"realsense:SERIAL"``, ``"bag:FILE"``
+    (RealSense recording), ``"kinect-recording:FILE"`` (.mkv), ``"folder:DIR"`` (or ``DIR``).
+
+    The RealSense and recording sources live in :mod:`services.detector.cameras` (imported
+    only for them); ``handkse camera`` offers their other options."""
     if spec == "kinect":
         return KinectSource(device_id, depth_mode, fps, undistort)
+    kind, _, arg = spec.partition(":")
+    if kind == "realsense":
+        from services.detector.cameras.realsense import RealSenseSource
+
+        return RealSenseSource(serial=arg or None, fps=fps, undistort=undistort,
+                               option=f"--source {spec}")
+    if kind == "bag":
+        from services.detector.cameras.realsense_recording import RealSenseRecording
+
+        return RealSenseRecording(arg, rate=rate, loop=loop, undistort=undistort,
+                                  option="--source")
+    if kind == "kinect-recording":
+        from services.detector.cameras.kinect_recording import KinectRecordingSource
+
+        return KinectRecordingSource(arg, rate=rate, loop=loop, undistort=undistort,
+                                     option="--source")
     path = spec.removeprefix("folder:")
     return FolderSource(path, rate=rate, loop=loop, fps=fps)
 

@@ -1,0 +1,1 @@
+"""Tests of the camera and recording sources (services/detector/cameras)."""
