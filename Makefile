@@ -8,7 +8,7 @@ PYTHON ?= python3
 VENV   := .venv
 BIN    := $(VENV)/bin
 # Extras installed for development; the lock covers exactly these (plus the build tools).
-EXTRAS ?= dev,eval,robot,detector,tune,view
+EXTRAS ?= dev,eval,robot,detector,tune,view,realsense
 LOCK   := requirements/dev.lock
 STAMP  := $(VENV)/.installed
 PIP    := $(BIN)/python -m pip --disable-pip-version-check
@@ -44,19 +44,23 @@ lock:
 	  pyproject.toml requirements/build.in \
 	  $(foreach e,$(subst $(comma), ,$(EXTRAS)),--extra $(e)) -o $(LOCK)
 	$(UV_COMPILE) --python-version 3.11 --python-platform x86_64-manylinux_2_28 \
-	  -c $(LOCK) pyproject.toml requirements/build.in --extra robot --extra detector \
+	  -c $(LOCK) pyproject.toml requirements/build.in --extra robot --extra detector --extra realsense \
 	  -o requirements/cpu.lock
 	$(UV_COMPILE) --python-version 3.11 --python-platform x86_64-manylinux_2_28 \
-	  -c $(LOCK) pyproject.toml requirements/build.in --extra gpu -o requirements/gpu.lock
+	  -c $(LOCK) pyproject.toml requirements/build.in --extra gpu --extra realsense \
+	  -o requirements/gpu.lock
 
 comma := ,
 
 # As root on a machine without them (a fresh Debian CI runner), install the system tools the
 # tests use: ip (network namespaces) and openssl (TLS certificates) for the deployment tests,
-# chromium for the web viewer test. Otherwise those tests skip with the reason.
+# chromium for the web viewer test, libusb for pyrealsense2. Otherwise those tests skip with the
+# reason.
 SYSTEM_TOOLS := ip:iproute2 openssl:openssl chromium:chromium
+SYSTEM_LIBS  := libusb-1.0.so.0:libusb-1.0-0
 test: install lint
 	@missing=""; for t in $(SYSTEM_TOOLS); do command -v $${t%%:*} >/dev/null || missing="$$missing $${t#*:}"; done; \
+	for t in $(SYSTEM_LIBS); do ldconfig -p | grep -q "$${t%%:*}" || missing="$$missing $${t#*:}"; done; \
 	if [ -n "$$missing" ] && [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null; then \
 	  echo "installing$$missing"; \
 	  apt-get update -qq && apt-get install -y -qq --no-install-recommends $$missing; fi
