@@ -522,9 +522,9 @@ def main(args: argparse.Namespace) -> int:
         if args.action == "show":
             print(json.dumps(load_manifest(models_dir), indent=2))
             return 0
-        progress = Progress(total=1)
-        manifest = prepare(models_dir, wheel=args.wheel, check=args.check, force=args.force,
-                           report=progress.note, progress=progress)
+        with Progress(total=1) as progress:  # the bar is finished even when prepare fails
+            manifest = prepare(models_dir, wheel=args.wheel, check=args.check, force=args.force,
+                               report=progress.note, progress=progress)
     except (ModelsMissing, PrepareError) as exc:
         print(f"handkse models {args.action}: {exc}", file=sys.stderr)
         return 2

@@ -1,4 +1,4 @@
-"""``handkse eval``: every method on every demonstration, Table II + CSV + bar chart."""
+"""``handkse eval``: every method on every demonstration; Table II, a CSV and the figures."""
 
 from __future__ import annotations
 
@@ -14,24 +14,28 @@ LATEST = Path(__file__).resolve().parents[2] / "bench" / "results" / "eval"
 
 
 def main(args: argparse.Namespace) -> int:
+    from services.common.progress import Progress
+    from services.evaluation.figures import describe_data
     from services.evaluation.report import write_report
-    from services.evaluation.runner import METHODS, Settings, evaluate
+    from services.evaluation.runner import METHODS, Settings, run_evaluation
 
     settings = Settings(tracker=section_from_args(args, "tracker"),
                         kinematics=section_from_args(args, "kinematics"))
     methods = tuple(args.methods.split(",")) if args.methods else METHODS
     jobs = args.jobs or max(1, (os.cpu_count() or 1))
-    rows = evaluate(args.split, args.seeds, settings, methods, jobs)
+    with Progress(1) as progress:  # the total is set by the evaluation
+        result = run_evaluation(args.split, args.seeds, settings, methods, jobs, progress)
     out = Path(args.out or Path("eval") / time.strftime("%Y-%m-%d"))
     title = (f"handkse evaluation: {args.split} split, {args.seeds} seed(s) per demonstration, "
              "synthetic demonstrations")
-    write_report(rows, methods, out, title)
+    written = write_report(result.rows, methods, out, title, result.histories,
+                           describe_data(result.rows, args.split))
     print((out / "table.md").read_text())
-    print(f"written {out}/table.md, results.csv, tangent_error.png")
+    print(f"written {out}/" + ", ".join(p.name for p in written))
     if args.publish:
         LATEST.mkdir(parents=True, exist_ok=True)
-        for name in ("table.md", "results.csv", "tangent_error.png"):
-            shutil.copy(out / name, LATEST / name)
+        for path in written:
+            shutil.copy(path, LATEST / path.name)
         print(f"copied to {LATEST}")
     return 0
 

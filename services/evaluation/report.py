@@ -1,4 +1,5 @@
-"""Evaluation outputs: Table II-style markdown, a CSV of every row, and a Fig. 4-style bar chart."""
+"""Evaluation outputs: Table II-style markdown, a CSV of every row, and the figures
+(:mod:`services.evaluation.figures`)."""
 
 from __future__ import annotations
 
@@ -10,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from services.evaluation.runner import LABELS, Row
+from services.evaluation.runner import LABELS, History, Row
 from services.synthetic.objects import PRESETS
 
 PRISMATIC_FIRST = ("prismatic", "revolute")
@@ -77,36 +78,21 @@ def write_csv(rows: Sequence[Row], path: Path) -> None:
             w.writerow({k: getattr(r, k) for k in fields})
 
 
-def plot_bars(rows: Sequence[Row], methods: Sequence[str], path: Path) -> None:
-    """Bar chart of the mean tangent error per method with the spread over objects (Fig. 4)."""
-    import matplotlib
+def write_report(rows: Sequence[Row], methods: Sequence[str], out_dir: Path, title: str,
+                 histories: Sequence[History] = (), data: str = "") -> list[Path]:
+    """Write ``table.md``, ``results.csv``, ``tangent_error.png`` and, given the histories of
+    our methods, ``convergence.png`` into ``out_dir``; returns the files written. ``data``
+    (default: from the rows) says in each figure's caption which demonstrations it shows."""
+    from services.evaluation import figures
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    table = per_object(rows, methods)
-    values = [[table[o][m] for o in table if math.isfinite(table[o][m])] for m in methods]
-    means = [float(np.mean(v)) if v else math.nan for v in values]
-    stds = [float(np.std(v)) if v else 0.0 for v in values]
-    fig, ax = plt.subplots(figsize=(7, 3.6), dpi=120)
-    colors = ["#d97fb0", "#5bc0c8", "#8fd3d8", "#9aa7c7", "#2b59c3"][-len(methods):]
-    ax.bar(range(len(methods)), means, yerr=stds, capsize=4, color=colors)
-    for i, v in enumerate(values):
-        ax.scatter(np.full(len(v), i) + np.linspace(-0.15, 0.15, len(v)), v, s=8, c="k",
-                   alpha=0.5, zorder=3)
-    ax.set_xticks(range(len(methods)), [LABELS[m] for m in methods], rotation=12, fontsize=8)
-    ax.set_ylabel("tangent error [deg]")
-    ax.set_title("Mean tangent error over objects (bars: ±1 std over objects; dots: objects)",
-                 fontsize=9)
-    ax.grid(axis="y", alpha=0.3)
-    fig.tight_layout()
-    fig.savefig(path)
-    plt.close(fig)
-
-
-def write_report(rows: Sequence[Row], methods: Sequence[str], out_dir: Path, title: str) -> Path:
     out_dir.mkdir(parents=True, exist_ok=True)
-    (out_dir / "table.md").write_text(table_markdown(rows, methods, title))
-    write_csv(rows, out_dir / "results.csv")
-    plot_bars(rows, methods, out_dir / "tangent_error.png")
-    return out_dir
+    data = data or figures.describe_data(rows)
+    written = [out_dir / "table.md", out_dir / "results.csv"]
+    written[0].write_text(table_markdown(rows, methods, title))
+    write_csv(rows, written[1])
+    written.append(figures.save(figures.tangent_error_figure(rows, methods, data),
+                                out_dir / "tangent_error.png"))
+    if histories:
+        written.append(figures.save(figures.convergence_figure(histories, data),
+                                    out_dir / "convergence.png"))
+    return written

@@ -6,8 +6,10 @@ ScrewMimic-style baselines; each estimate drives one simulated trial
 (:func:`services.robot_bridge.simulation.articulate_in_simulation`): the simulated Panda grasps
 the true object and turns it 180 deg along the estimated axis under the 70 N force limit. A trial
 succeeds if it reaches 180 deg (within the success tolerance) without an abort, as in the paper
-(sec. IV.C). Writes ``table.md`` (success rates, forces), ``results.csv`` (one row per trial) and
-``force_key.png`` (force over time for one key trial per method, like the paper's Fig. 6).
+(sec. IV.C). Writes ``table.md`` (success rates, forces), ``results.csv`` (one row per trial),
+``traces.json`` (the force traces) and the figures of :mod:`services.evaluation.robot_plots`:
+``force_trials.png`` (every trial) and ``force_key.png`` (one key demonstration, like the
+paper's Fig. 6).
 
 Every method gets the same task: turn 180 deg in the direction the human turned (from the
 demonstration's ground truth, expressed about each estimated axis); baseline estimates, which
@@ -23,13 +25,14 @@ import os
 import shutil
 import time
 from collections.abc import Sequence
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
 
+from services.common.progress import Progress
 from services.common.protocol import KinematicModel, PrismaticParams, RevoluteParams
 from services.robot_bridge.config import RobotBridgeConfig, config_from_args
 
@@ -40,6 +43,7 @@ METHODS = ("ours", "regal", "screwmimic")
 PARTICIPANT = 3
 LATEST = Path(__file__).resolve().parents[2] / "bench" / "results" / "robot_trials"
 LABELS = {"ours": "Ours", "regal": "Regal et al.-style", "screwmimic": "ScrewMimic-style"}
+REPORT_FILES = ("table.md", "results.csv", "traces.json", "force_trials.png", "force_key.png")
 
 
 @dataclass(frozen=True)
@@ -205,56 +209,37 @@ def table_markdown(rows: Sequence[TrialRow], methods: Sequence[str], title: str)
     return "\n".join(lines) + "\n"
 
 
-def plot_force(traces: dict[str, dict[str, list[float]]], outcomes: dict[str, str],
-               force_limit_n: float, path: Path, title: str) -> None:
-    """Force magnitude over time per method (the paper's Fig. 6); x marks an abort."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(7, 3.5))
-    for method, tr in traces.items():
-        label = f"{LABELS.get(method, method)}: {outcomes.get(method, '')}"
-        (line,) = ax.plot(tr["t_s"], tr["force_n"], label=label)
-        for t_stop in tr.get("stop_s", []):
-            k = int(np.searchsorted(tr["t_s"], t_stop))
-            k = min(k, len(tr["force_n"]) - 1)
-            ax.plot([t_stop], [tr["force_n"][k]], "x", color=line.get_color(), markersize=9)
-    ax.axhline(force_limit_n, color="k", linestyle="--", linewidth=1,
-               label=f"force limit {force_limit_n:.0f} N")
-    ax.set_xlabel("time (s)")
-    ax.set_ylabel("|F| (N)")
-    ax.set_title(title)
-    ax.legend(loc="upper left")
-    ax.grid(alpha=0.3)
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-
-
 def run_trials(seeds: int = 5, methods: Sequence[str] = METHODS,
                config: RobotBridgeConfig | None = None, jobs: int = 1,
                objects: Sequence[str] = OBJECTS
                ) -> tuple[list[TrialRow], dict[tuple[str, int, str], dict[str, list[float]]]]:
-    """Every (object, seed, method) trial; rows in task order and their force traces."""
+    """Every (object, seed, method) trial; rows in task order and their force traces. Shows
+    the trials as they finish and how many are left."""
+    t0 = time.monotonic()
     cfg = config or RobotBridgeConfig()
     tasks = [(o, s, m) for o in objects for s in range(seeds) for m in methods]
-    t0 = time.monotonic()
-    if jobs <= 1:
-        results = [run_trial(*t, cfg) for t in tasks]
-    else:
-        with ProcessPoolExecutor(jobs) as pool:
-            results = list(pool.map(run_trial, *zip(*tasks, strict=True),
-                                    [cfg] * len(tasks)))
-    rows = [r for r, _ in results]
-    traces = {t: tr for t, (_, tr) in zip(tasks, results, strict=True)}
-    for r in rows:
-        print(f"{r.object:<12} s{r.seed} {r.method:<11} {r.type_est:<10} axis "
-              f"{r.axis_angle_deg:5.1f} deg {r.axis_offset_cm:5.2f} cm -> "
-              f"{'ok' if r.success else r.reason:<17} {r.articulated_deg:7.1f} "
-              f"peak {r.peak_force_n:5.1f} N mean {r.mean_force_n:5.1f} N")
-    print(f"{len(rows)} trials in {time.monotonic() - t0:.1f} s")
+    results: list[tuple[TrialRow, dict[str, list[float]]] | None] = [None] * len(tasks)
+    with Progress(len(tasks)) as progress:
+        def finished(i: int, result: tuple[TrialRow, dict[str, list[float]]]) -> None:
+            results[i] = result
+            r = result[0]
+            progress.advance(f"{r.object} s{r.seed} {r.method}: {r.type_est}, axis "
+                             f"{r.axis_angle_deg:.1f} deg {r.axis_offset_cm:.2f} cm -> "
+                             f"{'ok' if r.success else r.reason} at {r.articulated_deg:.1f}, "
+                             f"peak {r.peak_force_n:.1f} N, mean {r.mean_force_n:.1f} N")
+
+        if jobs <= 1:
+            for i, t in enumerate(tasks):
+                finished(i, run_trial(*t, cfg))
+        else:
+            with ProcessPoolExecutor(jobs) as pool:
+                futures = {pool.submit(run_trial, *t, cfg): i for i, t in enumerate(tasks)}
+                for future in as_completed(futures):
+                    finished(futures[future], future.result())
+        progress.done(f"{len(tasks)} trials in {time.monotonic() - t0:.1f} s")
+    done = [r for r in results if r is not None]
+    rows = [r for r, _ in done]
+    traces = {t: tr for t, (_, tr) in zip(tasks, done, strict=True)}
     return rows, traces
 
 
@@ -268,13 +253,10 @@ def write_report(rows: Sequence[TrialRow], traces: dict[tuple[str, int, str],
         w.writeheader()
         for r in rows:
             w.writerow(asdict(r))
-    key_traces = {m: traces[("key", plot_seed, m)] for m in methods
-                  if ("key", plot_seed, m) in traces}
-    outcomes = {r.method: "success" if r.success else r.reason for r in rows
-                if r.object == "key" and r.seed == plot_seed}
-    if key_traces:
-        plot_force(key_traces, outcomes, force_limit_n, out / "force_key.png",
-                   f"key, participant {PARTICIPANT} seed {plot_seed}: force during articulation")
+    from services.evaluation import robot_plots
+
+    robot_plots.write_traces(traces, out / "traces.json")
+    robot_plots.write_figures(rows, traces, out, force_limit_n, title, plot_seed)
 
 
 def main(args: argparse.Namespace) -> int:
@@ -292,10 +274,10 @@ def main(args: argparse.Namespace) -> int:
              f"{config.force_limit_n:.0f} N, 180 deg in 6 s")
     write_report(rows, traces, methods, out, args.plot_seed, config.force_limit_n, title)
     print((out / "table.md").read_text().split("\n\nFailures")[0])
-    print(f"written {out}/table.md, results.csv, force_key.png")
+    print(f"written {out}/" + ", ".join(REPORT_FILES))
     if args.publish:
         LATEST.mkdir(parents=True, exist_ok=True)
-        for name in ("table.md", "results.csv", "force_key.png"):
+        for name in REPORT_FILES:
             if (out / name).exists():
                 shutil.copy(out / name, LATEST / name)
         print(f"copied to {LATEST}")

@@ -4,6 +4,8 @@ Methods, all fed the same synthetic landmark stream:
 ``regal`` (Regal-style single-landmark screw fit), ``screwmimic_faithful`` and
 ``screwmimic_fair`` (ScrewMimic-style fits to per-frame Kabsch hand poses), ``ours_no_unc``
 (our pipeline with the tracker's uncertainty models and outlier rejection off) and ``ours``.
+Our two methods also give a per-frame :class:`History` (tangent error and the true type's
+probability over time) for the convergence plot.
 """
 
 from __future__ import annotations
@@ -11,11 +13,12 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable, Iterable, Sequence
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass
 
 import numpy as np
 
+from services.common.progress import Progress
 from services.common.protocol import KinematicModel
 from services.evaluation import baselines, metrics
 from services.evaluation.metrics import JointEstimate
@@ -59,6 +62,34 @@ class Row:
     runtime_s: float
 
 
+@dataclass(frozen=True, eq=False)
+class History:
+    """One of our methods on one demonstration, frame by frame (M frames).
+
+    ``t_s`` (M,) seconds since the demonstration's first frame; ``tangent_error_deg`` (M,) of the
+    model held after each frame; ``p_true`` (M,) that model's probability of the true joint type.
+    Both NaN before the first model.
+    """
+
+    object: str
+    participant: int
+    seed: int
+    method: str
+    type_true: str
+    t_s: np.ndarray
+    tangent_error_deg: np.ndarray
+    p_true: np.ndarray
+
+
+@dataclass(frozen=True)
+class Evaluation:
+    """What :func:`run_evaluation` returns: one row per (demo, method), in task order, and the
+    per-frame histories of our methods."""
+
+    rows: list[Row]
+    histories: list[History]
+
+
 @dataclass(frozen=True)
 class Settings:
     tracker: TrackerConfig
@@ -81,7 +112,7 @@ def _row(demo: Demonstration, method: str, est: JointEstimate, runtime: float,
 
 
 def _ours(demo: Demonstration, method: str, tracker: TrackerConfig,
-          kinematics: KinematicsConfig) -> Row:
+          kinematics: KinematicsConfig) -> tuple[Row, History]:
     t0 = time.perf_counter()
     result = run_pipeline(demo, tracker, kinematics)
     runtime = time.perf_counter() - t0
@@ -89,8 +120,17 @@ def _ours(demo: Demonstration, method: str, tracker: TrackerConfig,
     estimates = _distinct_estimates(result.history)
     errors = metrics.tangent_errors_over_time(truth, estimates, demo.truth.grasp_points)
     converge = metrics.time_to_converge(result.stamps_ns, errors, CONVERGED_DEG)
-    return _row(demo, method, joint_estimate(result.final), runtime,
-                math.nan if converge is None else converge)
+    row = _row(demo, method, joint_estimate(result.final), runtime,
+               math.nan if converge is None else converge)
+    no_model = np.array([m is None for m in result.history], dtype=bool)
+    p_true = np.array([math.nan if m is None else float(m.probabilities.get(truth.type, 0.0))
+                       for m in result.history])
+    history = History(object=demo.object_name, participant=demo.participant, seed=demo.seed,
+                      method=method, type_true=truth.type,
+                      t_s=(result.stamps_ns - result.stamps_ns[0]) * 1e-9,
+                      tangent_error_deg=np.where(no_model, math.nan, np.degrees(errors)),
+                      p_true=p_true)
+    return row, history
 
 
 def _distinct_estimates(history: Sequence[KinematicModel | None]) -> list[JointEstimate | None]:
@@ -115,17 +155,19 @@ def _stream(demo: Demonstration) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return demo.stamps_ns, demo.points, demo.visibility
 
 
-def evaluate_demo(object_name: str, participant: int, seed: int, settings: Settings,
-                  methods: Iterable[str] = METHODS) -> list[Row]:
-    """All ``methods`` on one generated demonstration."""
+def run_demo(object_name: str, participant: int, seed: int, settings: Settings,
+             methods: Iterable[str] = METHODS) -> tuple[list[Row], list[History]]:
+    """All ``methods`` on one generated demonstration: their rows, and the per-frame histories
+    of our methods (the baselines fit once, at the end, and have none)."""
     demo = generate(object_name, participant, seed)
-    rows = []
+    rows: list[Row] = []
+    histories: list[History] = []
     for method in methods:
-        if method == "ours":
-            rows.append(_ours(demo, method, settings.tracker, settings.kinematics))
-        elif method == "ours_no_unc":
-            rows.append(_ours(demo, method, ablation_config(settings.tracker),
-                              settings.kinematics))
+        if method in ("ours", "ours_no_unc"):
+            tracker = settings.tracker if method == "ours" else ablation_config(settings.tracker)
+            row, history = _ours(demo, method, tracker, settings.kinematics)
+            rows.append(row)
+            histories.append(history)
         elif method == "regal":
             rows.append(_timed(demo, method, lambda: baselines.regal_style(*_stream(demo))))
         elif method == "screwmimic_faithful":
@@ -138,36 +180,54 @@ def evaluate_demo(object_name: str, participant: int, seed: int, settings: Setti
                                                                   variant="fair")))
         else:
             raise ValueError(f"unknown method {method!r}; known: {list(METHODS)}")
-    return rows
+    return rows, histories
 
 
-def evaluate(split: str = "evaluation", seeds: int = 1, settings: Settings | None = None,
-             methods: Iterable[str] = METHODS, jobs: int = 1,
-             progress: Callable[[str], None] = print) -> list[Row]:
-    """Every method on every (object, participant, seed) of ``split``."""
+def evaluate_demo(object_name: str, participant: int, seed: int, settings: Settings,
+                  methods: Iterable[str] = METHODS) -> list[Row]:
+    """All ``methods`` on one generated demonstration (the rows of :func:`run_demo`)."""
+    return run_demo(object_name, participant, seed, settings, methods)[0]
+
+
+def run_evaluation(split: str = "evaluation", seeds: int = 1, settings: Settings | None = None,
+                   methods: Iterable[str] = METHODS, jobs: int = 1,
+                   progress: Progress | None = None) -> Evaluation:
+    """Every method on every (object, participant, seed) of ``split``, in that order.
+
+    ``progress`` (optional) counts the demonstrations as they finish, with their errors.
+    """
     if split not in SPLITS:
         raise ValueError(f"unknown split {split!r}; choose from {list(SPLITS)}")
     settings = settings or Settings(TrackerConfig(), KinematicsConfig())
     methods = tuple(methods)
     tasks = [(o, p, s) for o, p in SPLITS[split] for s in range(seeds)]
-    rows: list[Row] = []
-    t0 = time.monotonic()
+    if progress is not None:
+        progress.total = len(tasks)
+    results: list[tuple[list[Row], list[History]] | None] = [None] * len(tasks)
 
-    def report(i: int, task: tuple[str, int, int], got: list[Row]) -> None:
-        errs = "  ".join(f"{r.method} {r.tangent_error_deg:5.1f}" for r in got)
-        progress(f"[{i + 1:3d}/{len(tasks)} {time.monotonic() - t0:6.1f} s] "
-                 f"{task[0]:<13} p{task[1]} s{task[2]}  {errs}")
+    def finished(i: int, result: tuple[list[Row], list[History]]) -> None:
+        results[i] = result
+        if progress is not None:
+            o, p, s = tasks[i]
+            errors = ", ".join(f"{r.method} {r.tangent_error_deg:.1f}" for r in result[0])
+            progress.advance(f"{o} p{p} s{s}: {errors} deg")
 
     if jobs <= 1:
         for i, task in enumerate(tasks):
-            got = evaluate_demo(*task, settings, methods)
-            rows.extend(got)
-            report(i, task, got)
+            finished(i, run_demo(*task, settings, methods))
     else:
         with ProcessPoolExecutor(jobs) as pool:
-            futures = [pool.submit(evaluate_demo, *task, settings, methods) for task in tasks]
-            for i, (task, future) in enumerate(zip(tasks, futures, strict=True)):
-                got = future.result()
-                rows.extend(got)
-                report(i, task, got)
-    return rows
+            futures = {pool.submit(run_demo, *task, settings, methods): i
+                       for i, task in enumerate(tasks)}
+            for future in as_completed(futures):
+                finished(futures[future], future.result())
+    done = [r for r in results if r is not None]
+    return Evaluation(rows=[row for rows, _ in done for row in rows],
+                      histories=[h for _, hs in done for h in hs])
+
+
+def evaluate(split: str = "evaluation", seeds: int = 1, settings: Settings | None = None,
+             methods: Iterable[str] = METHODS, jobs: int = 1,
+             progress: Progress | None = None) -> list[Row]:
+    """The rows of :func:`run_evaluation`."""
+    return run_evaluation(split, seeds, settings, methods, jobs, progress).rows

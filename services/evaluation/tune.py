@@ -11,10 +11,10 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import time
 from pathlib import Path
 
 from services.common.config import section_from_args, to_toml
+from services.common.progress import Progress
 from services.tracker.config import TrackerConfig
 
 # Table I dagger parameters: field -> (low, high, log scale). Ranges span about a decade around
@@ -44,21 +44,20 @@ def tune(base: TrackerConfig, kinematics: object, trials: int, seeds: int, jobs:
         values = {k: trial.suggest_float(k, lo, hi, log=log)
                   for k, (lo, hi, log) in SEARCH_SPACE.items()}
         cfg = dataclasses.replace(base, **values)
-        rows = evaluate("tuning", seeds, Settings(cfg, kinematics), ("ours",), jobs,  # type: ignore[arg-type]
-                        progress=lambda _line: None)
+        rows = evaluate("tuning", seeds, Settings(cfg, kinematics), ("ours",), jobs)  # type: ignore[arg-type]
         return method_means(rows, ("ours",))["ours"]
 
     optuna.logging.set_verbosity(optuna.logging.WARNING)
     study = optuna.create_study(direction="minimize",
                                 sampler=optuna.samplers.TPESampler(seed=seed))
     study.enqueue_trial({k: getattr(base, k) for k in SEARCH_SPACE})  # the paper's values first
-    t0 = time.monotonic()
 
-    def log_trial(study: optuna.Study, trial: optuna.trial.FrozenTrial) -> None:
-        print(f"trial {trial.number:3d}  {trial.value:6.2f} deg  best {study.best_value:6.2f}  "
-              f"({time.monotonic() - t0:.0f} s)", flush=True)
+    with Progress(trials) as progress:
+        def log_trial(study: optuna.Study, trial: optuna.trial.FrozenTrial) -> None:
+            progress.advance(f"trial {trial.number}: {trial.value:.2f} deg, "
+                             f"best {study.best_value:.2f} deg")
 
-    study.optimize(objective, n_trials=trials, callbacks=[log_trial])
+        study.optimize(objective, n_trials=trials, callbacks=[log_trial])
     best = dataclasses.replace(base, **study.best_params)
     history = [(t.number, float(t.value)) for t in study.trials if t.value is not None]
     return best, float(study.best_value), history
@@ -76,12 +75,15 @@ def main(args: argparse.Namespace) -> int:
                    + to_toml({"tracker": best}))
     print(f"tuned config written to {out} (tuning-split mean {value:.2f} deg)")
     lines = ["| split | default | tuned |", "| --- | ---: | ---: |"]
-    for split in ("tuning", "evaluation"):
-        means = [method_means(evaluate(split, args.seeds, Settings(cfg, kinematics), ("ours",),
-                                       args.jobs, progress=lambda _l: None), ("ours",))["ours"]
-                 for cfg in (base, best)]
-        lines.append(f"| {split} | {means[0]:.2f} | {means[1]:.2f} |")
-    print("\n".join(lines))
+    with Progress(4) as progress:
+        for split in ("tuning", "evaluation"):
+            means = []
+            for name, cfg in (("default", base), ("tuned", best)):
+                progress.step(f"{split} split with the {name} parameters")
+                rows = evaluate(split, args.seeds, Settings(cfg, kinematics), ("ours",), args.jobs)
+                means.append(method_means(rows, ("ours",))["ours"])
+            lines.append(f"| {split} | {means[0]:.2f} | {means[1]:.2f} |")
+        progress.done("\n".join(lines))
     return 0
 
 

@@ -14,7 +14,13 @@ def test_eval_writes_table_csv_and_plot(procs: Processes, tmp_path: Path) -> Non
     result = procs.run("eval", "--split", "tuning", "--methods", "regal,ours", "--jobs", "2",
                        "--out", str(out), timeout=600)
     assert result.returncode == 0, result.stdout + result.stderr
-    assert "[  8/8" in result.stdout  # progress per demonstration
+    # not a terminal: one plain line per finished demonstration, counting up, nothing redrawn
+    progress = [line for line in result.stdout.splitlines() if line.startswith("[")]
+    assert [line.split("]")[0] for line in progress] == [f"[{i}/8" for i in range(1, 9)]
+    assert all(" p1 s0: " in line or " p2 s0: " in line for line in progress)
+    assert all("regal" in line and "ours" in line and " deg (" in line for line in progress)
+    assert "s left)" in progress[0] and "left" not in progress[-1]
+    assert "\r" not in result.stdout
     table = (out / "table.md").read_text()
     for name in ("valve", "tension belt", "window lock", "flap latch", "**mean**",
                  "mean / ours", "joint type right"):
@@ -24,14 +30,23 @@ def test_eval_writes_table_csv_and_plot(procs: Processes, tmp_path: Path) -> Non
     assert len(rows) == 8 * 2
     assert {r["method"] for r in rows} == {"regal", "ours"}
     assert all(0.0 <= float(r["tangent_error_deg"]) <= 180.0 for r in rows)
-    assert (out / "tangent_error.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    for name in ("tangent_error.png", "convergence.png"):
+        assert (out / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+        assert (out / name).stat().st_size > 20_000
+    assert "convergence.png" in result.stdout  # listed among the files written
 
 
 def test_tune_writes_a_loadable_config(procs: Processes, tmp_path: Path) -> None:
     out = tmp_path / "tuned.toml"
     result = procs.run("tune", "--trials", "2", "--jobs", "2", "--out", str(out), timeout=900)
     assert result.returncode == 0, result.stdout + result.stderr
-    assert "trial   1" in result.stdout
+    assert [line.split(" (")[0].split(":")[0] for line in result.stdout.splitlines()
+            if line.startswith("[")] == [
+        "[1/2] trial 0", "[2/2] trial 1",  # the trials as they finish
+        "[1/4] tuning split with the default parameters",
+        "[2/4] tuning split with the tuned parameters",
+        "[3/4] evaluation split with the default parameters",
+        "[4/4] evaluation split with the tuned parameters"]
     assert "| tuning |" in result.stdout and "| evaluation |" in result.stdout
     config = load_section("tracker", out)  # what `handkse --config tuned.toml ...` does
     assert config.mahalanobis_rb > 0

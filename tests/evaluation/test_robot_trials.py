@@ -10,7 +10,9 @@ import pytest
 pytest.importorskip("mujoco")
 
 from services.common.protocol import KinematicModel
+from services.evaluation.robot_plots import read_rows, read_traces
 from services.evaluation.robot_trials import (
+    REPORT_FILES,
     demonstrated_extent,
     model_from_estimate,
     run_trial,
@@ -47,5 +49,10 @@ def test_one_trial_and_the_report(tmp_path: Path) -> None:
     md = table_markdown(rows, ["regal"], "test")
     assert "| Regal et al.-style |" in md and ("1/1" in md or "0/1" in md)
     write_report(rows, {("key", 4, "regal"): trace}, ["regal"], tmp_path, 4, 70.0, "test")
-    for name in ("table.md", "results.csv", "force_key.png"):
+    for name in REPORT_FILES:
         assert (tmp_path / name).stat().st_size > 0
+    # the figures can be redrawn from the files alone
+    assert read_rows(tmp_path / "results.csv") == rows
+    back = read_traces(tmp_path / "traces.json")[("key", 4, "regal")]
+    assert len(back["t_s"]) == len(trace["t_s"]) and back["stop_s"] == pytest.approx(
+        trace["stop_s"], abs=1e-3)
