@@ -221,15 +221,7 @@ def main(args: argparse.Namespace) -> int:
     return 0
 
 
-def _standalone(argv: list[str] | None = None) -> int:
-    from services.detector.__main__ import standalone_parser
-
-    parser = standalone_parser("python -m services.detector.camera", __doc__ or "", add_arguments)
-    args = parser.parse_args(argv)
-    logging.basicConfig(level=args.log_level,
-                        format="%(asctime)s %(name)s %(levelname)s %(message)s")
-    return main(args)
-
-
 if __name__ == "__main__":
-    sys.exit(_standalone())
+    from services.common.entry import run_service
+
+    sys.exit(run_service("services.detector.camera", __doc__ or "", main, add_arguments))

@@ -116,8 +116,8 @@ def test_kinect_without_pyk4a_names_the_extra_and_libk4a(monkeypatch: pytest.Mon
 def test_camera_service_reports_an_unusable_source(
         tmp_path: Path, capsys: pytest.CaptureFixture[str],
         monkeypatch: pytest.MonkeyPatch) -> None:
+    from services.common.entry import standalone_parser
     from services.detector import camera
-    from services.detector.__main__ import standalone_parser
 
     parser = standalone_parser("camera", camera.__doc__ or "", camera.add_arguments)
     assert camera.main(parser.parse_args(["--folder", str(tmp_path / "nothing")])) == 2

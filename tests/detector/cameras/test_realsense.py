@@ -175,8 +175,8 @@ def test_a_missing_sdk_is_one_line_naming_the_extra(monkeypatch: pytest.MonkeyPa
 
 
 def _camera_args(*argv: str) -> argparse.Namespace:
+    from services.common.entry import standalone_parser
     from services.detector import camera
-    from services.detector.__main__ import standalone_parser
 
     return standalone_parser("camera", camera.__doc__ or "", camera.add_arguments).parse_args(
         list(argv))
