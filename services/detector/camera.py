@@ -22,12 +22,12 @@ import time
 
 from services.common.keys import Keys
 from services.common.service import BusLike, Service, stop_on_signals
+from services.detector.source_factory import open_source
 from services.detector.sources import (
     FolderWriter,
     FrameSource,
     SourceUnavailable,
     encode_frame,
-    open_source,
 )
 
 log = logging.getLogger(__name__)

@@ -33,13 +33,13 @@ from services.common.service import BusLike, Service, stop_on_signals
 from services.detector.backproject import to_world
 from services.detector.config import DEVICES, VARIANTS, DetectorConfig
 from services.detector.pipeline import FrameResult, HandPipeline
+from services.detector.source_factory import open_source
 from services.detector.sources import (
     CapturedFrame,
     FrameSource,
     SourceUnavailable,
     decode_frame,
     encode_frame,
-    open_source,
 )
 
 log = logging.getLogger(__name__)

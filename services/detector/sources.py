@@ -1,7 +1,8 @@
 """RGB-D frame sources (Azure Kinect, a folder) and the RgbdFrame image codec.
 
 RealSense cameras and recordings (RealSense ``.bag``/``.db3``, Azure Kinect ``.mkv``) are in
-:mod:`services.detector.cameras`; :func:`open_source` opens any of them.
+:mod:`services.detector.cameras`; :func:`services.detector.source_factory.open_source` opens
+any of them.
 
 A source yields :class:`CapturedFrame` (BGR colour, raw 16-bit depth registered to the colour
 image, intrinsics of the colour camera) and is closed after use (``with``). Sources:
@@ -419,36 +420,6 @@ class KinectSource:
         self.close()
 
 
-def open_source(spec: str, *, rate: float = 1.0, loop: bool = False, device_id: int = 0,
-                depth_mode: str = "wfov_binned", fps: int = 30, undistort: bool = True
-                ) -> FrameSource:
-    """An open source: ``"kinect"``, ``"realsense"`` or ``"realsense:SERIAL"``, ``"bag:FILE"``
-    (RealSense recording), ``"kinect-recording:FILE"`` (.mkv), ``"folder:DIR"`` (or ``DIR``).
-
-    The RealSense and recording sources live in :mod:`services.detector.cameras` (imported
-    only for them); ``handkse camera`` offers their other options."""
-    if spec == "kinect":
-        return KinectSource(device_id, depth_mode, fps, undistort)
-    kind, _, arg = spec.partition(":")
-    if kind == "realsense":
-        from services.detector.cameras.realsense import RealSenseSource
-
-        return RealSenseSource(serial=arg or None, fps=fps, undistort=undistort,
-                               option=f"--source {spec}")
-    if kind == "bag":
-        from services.detector.cameras.realsense_recording import RealSenseRecording
-
-        return RealSenseRecording(arg, rate=rate, loop=loop, undistort=undistort,
-                                  option="--source")
-    if kind == "kinect-recording":
-        from services.detector.cameras.kinect_recording import KinectRecordingSource
-
-        return KinectRecordingSource(arg, rate=rate, loop=loop, undistort=undistort,
-                                     option="--source")
-    path = spec.removeprefix("folder:")
-    return FolderSource(path, rate=rate, loop=loop, fps=fps)
-
-
 __all__ = ["KINECT_HINT", "CapturedFrame", "FolderSource", "FolderWriter", "FrameSource",
            "KinectSource", "SourceUnavailable", "decode_color", "decode_depth", "decode_frame",
-           "encode_frame", "open_source"]
+           "encode_frame"]

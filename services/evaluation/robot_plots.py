@@ -20,7 +20,7 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from services.evaluation.robot_trials import LABELS, METHODS, OBJECTS, PARTICIPANT, TrialRow
+from services.evaluation.robot_trial_rows import LABELS, METHODS, OBJECTS, PARTICIPANT, TrialRow
 
 if TYPE_CHECKING:
     from matplotlib.axes import Axes

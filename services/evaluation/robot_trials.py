@@ -26,7 +26,7 @@ import shutil
 import time
 from collections.abc import Sequence
 from concurrent.futures import ProcessPoolExecutor, as_completed
-from dataclasses import asdict, dataclass
+from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
@@ -34,35 +34,13 @@ from numpy.typing import NDArray
 
 from services.common.progress import Progress
 from services.common.protocol import KinematicModel, PrismaticParams, RevoluteParams
+from services.evaluation.robot_trial_rows import LABELS, METHODS, OBJECTS, PARTICIPANT, TrialRow
 from services.robot_bridge.config import RobotBridgeConfig, config_from_args
 
 Array = NDArray[np.float64]
 
-OBJECTS = ("key", "window_lock")
-METHODS = ("ours", "regal", "screwmimic")
-PARTICIPANT = 3
 LATEST = Path(__file__).resolve().parents[2] / "bench" / "results" / "robot_trials"
-LABELS = {"ours": "Ours", "regal": "Regal et al.-style", "screwmimic": "ScrewMimic-style"}
 REPORT_FILES = ("table.md", "results.csv", "traces.json", "force_trials.png", "force_key.png")
-
-
-@dataclass(frozen=True)
-class TrialRow:
-    """One simulated trial. Angles in degrees, distances in cm, forces in N."""
-
-    object: str
-    seed: int
-    method: str
-    type_est: str
-    axis_angle_deg: float
-    axis_offset_cm: float      # distance of the estimated axis from the true one at the grasp
-    success: bool
-    reason: str
-    articulated_deg: float
-    peak_force_n: float
-    mean_force_n: float
-    peak_torque_nm: float
-    duration_s: float
 
 
 def demonstrated_extent(joint_type: str, axis: Array, point: Array, points: Array) -> float:

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from services.common.protocol import ProtocolError, RgbdFrame
+from services.detector.source_factory import open_source
 from services.detector.sources import (
     CapturedFrame,
     FolderSource,
@@ -18,7 +19,6 @@ from services.detector.sources import (
     SourceUnavailable,
     decode_frame,
     encode_frame,
-    open_source,
 )
 from tests.detector.conftest import CATCHER_CROP, crop, intrinsics_for
 

@@ -19,7 +19,8 @@ import pytest
 from services.common.bus import Bus
 from services.common.keys import Keys
 from services.common.protocol import RgbdFrame
-from services.detector.sources import SourceUnavailable, decode_frame, open_source
+from services.detector.source_factory import open_source
+from services.detector.sources import SourceUnavailable, decode_frame
 from tests.conftest import Processes, output_of, wait_until, zenoh_args
 from tests.detector.cameras.images import block_image, smooth_image
 
