@@ -5,8 +5,9 @@ TrackerConfig`` and so on); this module loads a TOML file, applies command-line 
 (``--set tracker.mahalanobis_rb=0.3``), and builds those dataclasses, rejecting unknown keys and
 wrong types with an error that names the section and key.
 
-Sections: ``zenoh`` (:class:`~services.common.bus.ZenohOptions`), ``tracker``, ``kinematics``,
-and whatever other packages register in :data:`SECTIONS`.
+Sections: ``zenoh`` (:class:`~services.common.bus.ZenohOptions`), ``limits`` and ``stamps`` (the
+input guards every service shares), ``tracker``, ``kinematics``, and whatever other packages
+register in :data:`SECTIONS`.
 """
 
 from __future__ import annotations
@@ -31,6 +32,7 @@ T = TypeVar("T")
 SECTIONS: dict[str, str] = {
     "zenoh": "services.common.bus:ZenohOptions",
     "limits": "services.common.service:ServiceLimits",
+    "stamps": "services.common.stamps:StampLimits",
     "tracker": "services.tracker.config:TrackerConfig",
     "kinematics": "services.kinematics.config:KinematicsConfig",
     "detector": "services.detector.config:DetectorConfig",

@@ -109,6 +109,23 @@ class KinematicsConfig:
     # been observed for this long [s]; after that "rigid" is a supported conclusion.
     min_still_duration_for_rigid_s: float = 1.0
 
+    # --- Input gates (docs/estimation.md#input-gates) ---
+    # A hand pose is an outlier, not used, when the squared Mahalanobis distance of its innovation
+    # from the confident joint model's prediction, and of its jump from the last accepted pose's
+    # innovation, exceed the chi-square (6 dof) quantile of this many standard deviations
+    # (8: 82.2; on the synthetic demonstrations the first stays below 29).
+    outlier_gate_sigmas: float = 8.0
+    # ... applied once the published type is prismatic or revolute with at least this probability.
+    outlier_gate_min_probability: float = 0.999
+    # Whatever the model, a hand pose this far from the demonstration's first one is an outlier [m].
+    max_hand_displacement_m: float = 3.0
+    # A run of at least this many consecutive outliers spanning at least outlier_run_s of stamps
+    # is the hand's real motion: against a joint prediction the gate yields (the poses are used
+    # until one is inside the gate again); against the displacement bound the demonstration
+    # restarts from the current pose.
+    outlier_run_count: int = 15
+    outlier_run_s: float = 0.5
+
     def __post_init__(self) -> None:
         positive = (
             "prismatic_initial_variance", "revolute_initial_variance",
@@ -117,6 +134,7 @@ class KinematicsConfig:
             "rigid_max_translation_m", "rigid_max_rotation_rad",
             "revolute_max_joint_distance_m", "disconnected_density",
             "prismatic_min_translation_m", "revolute_min_rotation_rad", "max_prediction_dt_s",
+            "outlier_gate_sigmas", "max_hand_displacement_m",
         )
         non_negative = (
             "prismatic_axis_noise_rad2_per_s3", "prismatic_q_noise_m2_per_s3",
@@ -124,7 +142,7 @@ class KinematicsConfig:
             "revolute_point_noise_m2_per_s3", "revolute_q_noise_rad2_per_s3",
             "revolute_qdot_noise_rad2_per_s3", "measurement_noise_floor",
             "prior_rigid", "prior_prismatic", "prior_revolute", "prior_disconnected",
-            "min_still_duration_for_rigid_s", "min_motion_sigmas",
+            "min_still_duration_for_rigid_s", "min_motion_sigmas", "outlier_run_s",
         )
         for f in fields(self):
             value = getattr(self, f.name)
@@ -146,6 +164,11 @@ class KinematicsConfig:
             raise ValueError(
                 f"history_capacity must be even and >= 2 * likelihood_sample_num "
                 f"({2 * self.likelihood_sample_num}), got {self.history_capacity}")
+        if not 0.0 < self.outlier_gate_min_probability <= 1.0:
+            raise ValueError("outlier_gate_min_probability must be in (0, 1], got "
+                             f"{self.outlier_gate_min_probability!r}")
+        if self.outlier_run_count < 1:
+            raise ValueError(f"outlier_run_count must be >= 1, got {self.outlier_run_count}")
         if self.min_updates_for_type < 1:
             raise ValueError(f"min_updates_for_type must be >= 1, got {self.min_updates_for_type}")
         if self.likelihood_aggregation not in LIKELIHOOD_AGGREGATIONS:

@@ -47,13 +47,21 @@ for rigid, disconnected and unknown. ``predict_hand_pose`` reproduces the hand p
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, Literal, get_args
 
 import numpy as np
 from numpy.typing import NDArray
 
-from services.common.protocol import KinematicModel, PrismaticParams, RevoluteParams
+from services.common.protocol import (
+    FRAME_IDS,
+    KinematicModel,
+    PrismaticParams,
+    ProtocolError,
+    RevoluteParams,
+)
+from services.common.snapshot import SnapshotError, SnapshotReader
+from services.common.stamps import INT64_MAX
 from services.kinematics.config import KinematicsConfig
 from services.kinematics.filters import (
     JOINT_TYPES,
@@ -65,15 +73,21 @@ from services.kinematics.filters import (
     revolute_noise_inflation,
     tangent_basis,
 )
-from services.kinematics.filters.geometry import se3_inverse_fast, se3_log_fast
+from services.kinematics.filters.geometry import (
+    adjoint_fast,
+    cross3,
+    se3_inverse_fast,
+    se3_log_fast,
+)
+from services.kinematics.prediction import predict_hand_pose, predicted_pose
 from services.kinematics.selection import ModelSelector
 
 Array = NDArray[np.float64]
 
-SNAPSHOT_VERSION = 1
+SNAPSHOT_VERSION = 2
 
 RejectReason = Literal["invalid_stamp", "invalid_value", "bad_shape", "non_finite",
-                       "invalid_covariance", "duplicate_stamp", "out_of_order"]
+                       "invalid_covariance", "duplicate_stamp", "out_of_order", "outlier"]
 REJECT_REASONS: tuple[RejectReason, ...] = get_args(RejectReason)
 
 _I3 = np.eye(3)
@@ -83,10 +97,53 @@ _I6 = np.eye(6)
 @dataclass(frozen=True)
 class UpdateResult:
     """What one :meth:`KinematicEstimator.update` did: ``model`` after an accepted pose, else None
-    and ``reason`` says why it was rejected (the state is then unchanged)."""
+    and ``reason`` says why it was rejected (the estimate is then unchanged). ``note``: for an
+    outlier how far it was; for an accepted pose, why the outlier policy let it in (the gate
+    yielded, or the demonstration restarted; docs/estimation.md#input-gates), else empty."""
 
     model: KinematicModel | None
     reason: RejectReason | None = None
+    note: str = field(default="", compare=False)
+
+
+def _mahalanobis2(e: Array, S: Array) -> float:
+    """``e^T S^-1 e``; infinite when ``S`` is singular (nothing is inside a degenerate gate)."""
+    try:
+        return float(e @ np.linalg.solve(S, e))
+    except np.linalg.LinAlgError:
+        return math.inf
+
+
+def chi2_quantile_of_sigmas(sigmas: float, dof: int) -> float:
+    """The squared Mahalanobis distance that a ``dof``-dimensional Gaussian exceeds as rarely as a
+    1-D one exceeds ``sigmas`` standard deviations: ``x`` with ``P(chi2_dof > x) = erfc(sigmas /
+    sqrt 2)``. ``dof`` even, so the survival function is ``exp(-x/2) sum_{i < dof/2} (x/2)^i / i!``
+    (solved by bisection on ``log``, exact to 1e-12 relative)."""
+    if dof < 2 or dof % 2:
+        raise ValueError(f"dof must be even and >= 2, got {dof}")
+    x = sigmas / math.sqrt(2.0)
+    if x < 20.0:
+        log_p = math.log(math.erfc(x))
+    else:  # erfc underflows: its asymptotic series (relative error below 1e-9 here)
+        x2 = x * x
+        log_p = (-x2 - math.log(x * math.sqrt(math.pi))
+                 + math.log1p(-0.5 / x2 + 0.75 / (x2 * x2) - 1.875 / (x2 * x2 * x2)))
+
+    def log_sf(x: float) -> float:
+        h = 0.5 * x
+        term, total = 1.0, 1.0
+        for i in range(1, dof // 2):
+            term *= h / i
+            total += term
+        return -h + math.log(total)
+
+    lo, hi = 0.0, 1.0
+    while log_sf(hi) > log_p:
+        hi *= 2.0
+    while hi - lo > 1e-12 * hi:
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if log_sf(mid) > log_p else (lo, mid)
+    return 0.5 * (lo + hi)
 
 
 def canonical_axis_sign(u: Array) -> float:
@@ -159,16 +216,22 @@ def translation_jacobian(position: Array) -> Array:
 class KinematicEstimator:
     """Joint EKFs (rigid, prismatic, revolute, disconnected) and model selection, online.
 
-    ``update`` never raises on bad input: it rejects malformed or non-finite poses/covariances and
-    duplicate or out-of-order stamps, says why in its :class:`UpdateResult` and keeps its state;
-    counting is the caller's. No I/O, no clock: time comes only from the stamps.
+    ``update`` never raises on bad input: it rejects malformed or non-finite poses/covariances,
+    duplicate or out-of-order stamps and outliers (docs/estimation.md#input-gates), says why in its
+    :class:`UpdateResult` and keeps its estimate; counting is the caller's. No I/O, no clock: time
+    comes only from the stamps (how far ahead a stamp may be is the service's check,
+    :mod:`services.common.stamps`).
     """
 
     def __init__(self, config: KinematicsConfig | None = None, frame_id: str = "camera") -> None:
+        if frame_id not in FRAME_IDS:
+            raise ValueError(f"frame_id must be one of {FRAME_IDS}, got {frame_id!r}")
         self.config = KinematicsConfig() if config is None else config
         self.frame_id = frame_id
         self._floor3 = self.config.measurement_noise_floor * _I3
         self._floor6 = self.config.measurement_noise_floor * _I6
+        self._gate_d2 = chi2_quantile_of_sigmas(self.config.outlier_gate_sigmas, 6)
+        self._run_ns = round(self.config.outlier_run_s * 1e9)
         self.reset()
 
     # ---------------------------------------------------------------------------------- state
@@ -189,6 +252,14 @@ class KinematicEstimator:
         self._prismatic: PrismaticJoint | None = None
         self._revolute: RevoluteJoint | None = None
         self._rotation_pending = False
+        # Outlier gate (docs/estimation.md#input-gates): the innovation (6,) of the last accepted
+        # pose against the joint prediction and that pose's covariance (None unless the model was
+        # prismatic or revolute), the number of consecutive outliers, the stamp of the first, and
+        # whether the gate yields to them.
+        self._innovation: tuple[Array, Array] | None = None
+        self._outliers = 0
+        self._outliers_since = 0
+        self._gate_yields = False
         self._selector = ModelSelector(cfg)
         self._log_scores: Array = np.array([
             math.log(p) if p > 0.0 else -math.inf
@@ -233,13 +304,25 @@ class KinematicEstimator:
         """The measured reference pose ``T(t0)`` (4x4), None before the first update."""
         return None if self._T0 is None else self._T0.copy()
 
+    @property
+    def last_stamp_ns(self) -> int | None:
+        """Stamp of the last accepted pose of this demonstration, None before one."""
+        return self._last_stamp
+
+    @property
+    def gate_yields(self) -> bool:
+        """Whether the joint gate currently yields to a run of outliers (a regrasp, or a model
+        that no longer explains the hand; docs/estimation.md#input-gates)."""
+        return self._gate_yields
+
     # ---------------------------------------------------------------------------------- input
 
     def _check(self, stamp_ns: Any, T: Any, cov: Any) -> tuple[RejectReason | None, Array, Array]:
         """The guards that keep the state sound (see the module docstring for what is not
         checked here); returns ``(reason or None, T, Sigma)`` with Sigma symmetrised."""
         empty = _I3
-        if isinstance(stamp_ns, bool) or not isinstance(stamp_ns, (int, np.integer)):
+        if (isinstance(stamp_ns, bool) or not isinstance(stamp_ns, (int, np.integer))
+                or not 0 <= int(stamp_ns) <= INT64_MAX):
             return "invalid_stamp", empty, empty
         try:
             T = np.asarray(T, dtype=float)
@@ -273,13 +356,39 @@ class KinematicEstimator:
             return UpdateResult(model=None, reason=reason)
         stamp = int(stamp_ns)
         position = T[:3, 3]
+        note = ""
+        if self._T0 is not None:
+            outlier, e = self._outlier(stamp, T, Sigma)
+            if outlier is None:
+                self._outliers = 0
+                self._gate_yields = False
+            else:
+                far, why = outlier
+                if not self._outliers:
+                    self._outliers_since = stamp
+                self._outliers += 1
+                run = (self._outliers >= self.config.outlier_run_count
+                       and stamp - self._outliers_since >= self._run_ns)
+                if not run:
+                    return UpdateResult(model=None, reason="outlier", note=why)
+                note = (f"{self._outliers} consecutive outliers over "
+                        f"{(stamp - self._outliers_since) * 1e-9:.3g} s ({why})")
+                if far:
+                    self.reset()  # the reference was the outlier, or the hand is elsewhere now
+                    note = f"demonstration restarted after {note}"
+                elif not self._gate_yields:
+                    self._gate_yields = True
+                    note = f"outlier gate yields after {note}"
+                else:
+                    note = ""
+            self._innovation = None if e is None else (e, Sigma)
         if self._T0 is None:
             self._set_reference(T, Sigma, stamp)
             self._selector.add(np.zeros(3), _I3, 0.0, 0.0)
             self._updates = 1
             self._log_scores = self._selector.log_scores(None, None, position, position)
             self._model = self._make_model()
-            return UpdateResult(model=self._model)
+            return UpdateResult(model=self._model, note=note)
 
         cfg = self.config
         dt = (stamp - self._last_stamp) * 1e-9 if self._last_stamp is not None else 0.0
@@ -335,7 +444,82 @@ class KinematicEstimator:
                                                      T0[:3, 3])
         self._updates += 1
         self._model = self._make_model()
-        return UpdateResult(model=self._model)
+        return UpdateResult(model=self._model, note=note)
+
+    def _outlier(self, stamp: int, T: Array, Sigma: Array,
+                 ) -> tuple[tuple[bool, str] | None, Array | None]:
+        """``((far, why) or None, e)``: whether the pose is an outlier, and its innovation ``e``
+        (6,) against the joint prediction (None unless the model is prismatic or revolute).
+
+        ``far``: more than ``max_hand_displacement_m`` from the reference pose. Otherwise, once the
+        joint model is confident, the pose is an outlier when its innovation ``e`` is outside the
+        gate (``e^T S^-1 e``, :meth:`_innovation_covariance`) **and** jumped from the innovation
+        ``e'`` of the last accepted pose by more than the gate (``(e - e')^T (S + Sigma')^-1
+        (e - e')``, ``Sigma'`` that pose's covariance): a hand that drifts away from the predicted
+        motion moves its innovation a little per frame and is let through (the evidence that the
+        model is wrong), a pose that jumps is not (docs/estimation.md#input-gates)."""
+        cfg = self.config
+        assert self._T0 is not None
+        d = T[:3, 3] - self._T0[:3, 3]
+        dist = math.sqrt(float(d @ d))
+        if dist > cfg.max_hand_displacement_m:
+            return (True, f"{dist:.3g} m from the first pose of the demonstration (limit "
+                          f"kinematics.max_hand_displacement_m = {cfg.max_hand_displacement_m:g})"
+                    ), None
+        model = self._model
+        if model.type not in ("prismatic", "revolute"):
+            return None, None
+        dt = min((stamp - model.stamp_ns) * 1e-9, cfg.max_prediction_dt_s)
+        stamp_pred = model.stamp_ns + round(dt * 1e9)
+        T_pred = predicted_pose(model, stamp_pred)
+        if T_pred is None:
+            return None, None
+        e = se3_log_fast(T @ se3_inverse_fast(T_pred))
+        if model.probabilities[model.type] < cfg.outlier_gate_min_probability:
+            return None, e
+        # S >= Sigma + floor I, so e^T (Sigma + floor I)^-1 e bounds the distance from above: the
+        # common case, a pose well inside the gate, needs no propagated covariance.
+        if _mahalanobis2(e, Sigma + self._floor6) <= self._gate_d2:
+            return None, e
+        S = self._innovation_covariance(stamp_pred, dt, Sigma)
+        d2 = _mahalanobis2(e, S)
+        if d2 <= self._gate_d2:
+            return None, e
+        if self._innovation is not None:
+            e_last, Sigma_last = self._innovation
+            if _mahalanobis2(e - e_last, S + Sigma_last) <= self._gate_d2:
+                return None, e
+        return (False, f"Mahalanobis distance {math.sqrt(d2):.3g} from the {model.type} "
+                       f"prediction (gate {math.sqrt(self._gate_d2):.3g}, "
+                       f"kinematics.outlier_gate_sigmas = {cfg.outlier_gate_sigmas:g})"), e
+
+    def _innovation_covariance(self, stamp_pred: int, dt: float, Sigma: Array) -> Array:
+        """Covariance of the innovation ``e = log(T T_pred^-1)`` (left perturbation, in ``frame``)
+        of a pose with covariance ``Sigma`` against the current joint model's prediction at
+        ``stamp_pred``, ``dt`` after the model:
+
+        ``S = C_pred + Sigma + Ad(D) Sigma0 Ad(D)^T + s_q dt^3/3 xi xi^T + floor I``: the model's
+        propagated parameter covariance (:func:`predict_hand_pose`), the pose's own, the reference
+        pose's (moved with the joint, ``D = T_pred T_ref^-1``) and the joint value's process noise
+        along the screw ``xi`` over ``dt`` (capped like the filters').
+        """
+        model = self._model
+        cfg = self.config
+        if model.type == "prismatic" and model.prismatic is not None:
+            u = model.prismatic.axis
+            xi = np.array([u[0], u[1], u[2], 0.0, 0.0, 0.0])
+            s_q = cfg.prismatic_q_noise_m2_per_s3
+        else:
+            assert model.revolute is not None
+            u, p = model.revolute.axis, model.revolute.point
+            xi = np.concatenate([cross3(p, u), u])
+            s_q = cfg.revolute_q_noise_rad2_per_s3
+        predicted = predict_hand_pose(model, stamp_pred)
+        assert predicted is not None
+        T_pred, C_pred = predicted
+        A = adjoint_fast(T_pred @ se3_inverse_fast(model.reference_pose))
+        return (C_pred + Sigma + A @ self._Sigma0 @ A.T
+                + (s_q * dt * dt * dt / 3.0) * np.outer(xi, xi) + self._floor6)
 
     def _significant(self, v: Array, Sigma_v: Array) -> bool:
         """Whether ``v^T Sigma_v^-1 v >= min_motion_sigmas^2`` (``Sigma_v`` floored)."""
@@ -412,30 +596,68 @@ class KinematicEstimator:
             "selector": self._selector.to_state(),
             "log_scores": self._log_scores.copy(),
             "rotation_pending": self._rotation_pending,
+            "innovation": None if self._innovation is None else {
+                "e": self._innovation[0].copy(), "covariance": self._innovation[1].copy()},
+            "outliers": self._outliers,
+            "outliers_since_ns": self._outliers_since,
+            "gate_yields": self._gate_yields,
         }
 
     @classmethod
     def from_snapshot(cls, d: dict[str, Any], config: KinematicsConfig) -> KinematicEstimator:
-        """Rebuild an estimator from :meth:`to_snapshot`; continuing gives identical results."""
-        if d.get("version") != SNAPSHOT_VERSION:
-            raise ValueError(f"unsupported kinematics snapshot version {d.get('version')!r}")
-        est = cls(config, frame_id=str(d["frame_id"]))
-        if d["reference_pose"] is not None:
-            est._set_reference(np.array(d["reference_pose"], dtype=float),
-                               np.array(d["reference_covariance"], dtype=float),
-                               int(d["stamp0_ns"]))
-        est._last_stamp = None if d["last_stamp_ns"] is None else int(d["last_stamp_ns"])
-        est._updates = int(d["updates"])
-        est._rigid = RigidJoint.from_state(d["rigid"])
-        est._disconnected = DisconnectedJoint.from_state(d["disconnected"])
-        est._prismatic = (None if d["prismatic"] is None
-                          else PrismaticJoint.from_state(config, d["prismatic"]))
-        est._revolute = (None if d["revolute"] is None
-                         else RevoluteJoint.from_state(config, d["revolute"]))
-        est._selector = ModelSelector.from_state(config, d["selector"])
-        est._log_scores = np.array(d["log_scores"], dtype=float)
-        est._rotation_pending = bool(d.get("rotation_pending", False))
+        """Rebuild an estimator from :meth:`to_snapshot`; continuing gives identical results.
+
+        Every value is checked (type, shape, finite, range; ``frame_id`` camera or world; stamps
+        in ``[0, 2^63)`` and ordered) and the restored model must pass the wire checks of a
+        received one, so nothing :meth:`to_snapshot` cannot have written is ever served:
+        :class:`~services.common.snapshot.SnapshotError` (a ValueError) names the first field that
+        is wrong. Whether the last stamp is plausible *now* is the service's check
+        (:meth:`services.common.stamps.StampWindow.lead_problem`).
+        """
+        r = SnapshotReader(d, "estimator")
+        version = r.raw("version")
+        if version != SNAPSHOT_VERSION:
+            raise SnapshotError(f"estimator.version: unsupported snapshot version {version!r} "
+                                f"(this version writes {SNAPSHOT_VERSION})")
+        est = cls(config, frame_id=r.choice("frame_id", FRAME_IDS))
+        updates = r.integer("updates", 0)
+        last = r.optional_integer("last_stamp_ns", 0, INT64_MAX)
+        if r.is_none("reference_pose"):
+            if updates or last is not None:
+                raise SnapshotError("estimator.reference_pose: missing although "
+                                    f"{updates} updates were made")
+        else:
+            stamp0 = r.integer("stamp0_ns", 0, INT64_MAX)
+            if last is None or last < stamp0 or updates < 1:
+                raise SnapshotError(f"estimator.last_stamp_ns: {last!r} does not follow "
+                                    f"stamp0_ns {stamp0} after {updates} updates")
+            est._set_reference(r.pose("reference_pose"), r.covariance("reference_covariance", 6),
+                               stamp0)
+        est._last_stamp = last
+        est._updates = updates
+        est._rigid = RigidJoint.from_state(r.map("rigid"))
+        est._disconnected = DisconnectedJoint.from_state(r.map("disconnected"))
+        prismatic = r.optional_map("prismatic")
+        est._prismatic = None if prismatic is None else PrismaticJoint.from_state(config, prismatic)
+        revolute = r.optional_map("revolute")
+        est._revolute = None if revolute is None else RevoluteJoint.from_state(config, revolute)
+        est._selector = ModelSelector.from_state(config, r.map("selector"))
+        est._log_scores = r.array("log_scores", (4,), allow_minus_inf=True)
+        if not np.isfinite(est._log_scores).any():
+            raise SnapshotError("estimator.log_scores: no finite score")
+        est._rotation_pending = r.boolean("rotation_pending")
+        innovation = r.optional_map("innovation")
+        est._innovation = (None if innovation is None
+                           else (innovation.array("e", (6,)),
+                                 innovation.covariance("covariance", 6)))
+        est._outliers = r.integer("outliers", 0)
+        est._outliers_since = r.integer("outliers_since_ns", 0, INT64_MAX)
+        est._gate_yields = r.boolean("gate_yields")
         est._model = est._make_model()
+        try:  # the model it serves passes the checks a received one must pass
+            KinematicModel.from_msgpack(est._model.to_msgpack())
+        except ProtocolError as exc:
+            raise SnapshotError(f"estimator: the restored model is not valid: {exc}") from exc
         return est
 
 
@@ -445,6 +667,7 @@ __all__ = [
     "RejectReason",
     "UpdateResult",
     "canonical_axis_sign",
+    "chi2_quantile_of_sigmas",
     "prismatic_params",
     "revolute_params",
     "translation_jacobian",

@@ -2,7 +2,8 @@
 
 One function, :func:`predict_hand_pose`, on the one model type
 :class:`services.common.protocol.KinematicModel` (published by the kinematics service, returned by
-:class:`services.kinematics.estimator.KinematicEstimator`).
+:class:`services.kinematics.estimator.KinematicEstimator`); :func:`predicted_pose` is its pose
+alone, for callers that need the covariance only now and then (the estimator's outlier gate).
 """
 
 from __future__ import annotations
@@ -78,4 +79,25 @@ def predict_hand_pose(model: KinematicModel, stamp_ns: int) -> tuple[Array, Arra
     return D @ T_ref, 0.5 * (cov + cov.T)
 
 
-__all__ = ["predict_hand_pose"]
+def predicted_pose(model: KinematicModel, stamp_ns: int) -> Array | None:
+    """The pose of :func:`predict_hand_pose` alone (identical), without its covariance."""
+    model_type = model.type
+    T_ref = np.asarray(model.reference_pose, dtype=float)
+    if model_type == "rigid":
+        return T_ref.copy()
+    dt = (int(stamp_ns) - int(model.stamp_ns)) * 1e-9
+    if model_type == "prismatic" and model.prismatic is not None:
+        prm = model.prismatic
+        u = _unit(prm.axis)
+        D = np.eye(4)
+        D[:3, 3] = (float(prm.q) + float(prm.dq) * dt) * u
+    elif model_type == "revolute" and model.revolute is not None:
+        rev = model.revolute
+        D = revolute_delta(_unit(rev.axis), np.asarray(rev.point, dtype=float).reshape(3),
+                           float(rev.q) + float(rev.dq) * dt)
+    else:
+        return None
+    return D @ T_ref
+
+
+__all__ = ["predict_hand_pose", "predicted_pose"]

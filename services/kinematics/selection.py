@@ -36,6 +36,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from services.common.snapshot import SnapshotError, SnapshotReader
 from services.kinematics.config import KinematicsConfig
 from services.kinematics.filters import JOINT_TYPES, PrismaticJoint, RevoluteJoint
 
@@ -216,13 +217,22 @@ class DeltaHistory:
                 "frames_seen": self.frames_seen, "data": self.data[:self.n].copy()}
 
     @classmethod
-    def from_state(cls, state: dict[str, Any]) -> DeltaHistory:
-        """Rebuild from :meth:`to_state`."""
-        h = cls(int(state["capacity"]))
-        h.n = int(state["n"])
-        h.stride = int(state["stride"])
-        h.frames_seen = int(state["frames_seen"])
-        h.data[:h.n] = np.asarray(state["data"], dtype=float).reshape(h.n, _NCOL)
+    def from_state(cls, state: dict[str, Any] | SnapshotReader,
+                   capacity: int | None = None) -> DeltaHistory:
+        """Rebuild from :meth:`to_state` (with ``capacity``, if given, the one it must have);
+        SnapshotError naming the field for a value :meth:`to_state` cannot have written."""
+        r = state if isinstance(state, SnapshotReader) else SnapshotReader(state, "history")
+        cap = r.integer("capacity", 2, capacity)
+        if cap % 2 or (capacity is not None and cap != capacity):
+            raise SnapshotError(f"{r.path}.capacity: {cap} is not the configured "
+                                f"history_capacity {capacity}")
+        h = cls(cap)
+        h.frames_seen = r.integer("frames_seen", 0)
+        h.n = r.integer("n", 0, min(cap, h.frames_seen))
+        h.stride = r.integer("stride", 1, max(1, h.frames_seen))
+        if h.stride & (h.stride - 1):
+            raise SnapshotError(f"{r.path}.stride: {h.stride} is not a power of 2")
+        h.data[:h.n] = r.array("data", (h.n, _NCOL))
         return h
 
 
@@ -383,11 +393,14 @@ class ModelSelector:
         return {"rigid_memory": self.rigid_memory, "history": self.history.to_state()}
 
     @classmethod
-    def from_state(cls, config: KinematicsConfig, state: dict[str, Any]) -> ModelSelector:
-        """Rebuild from :meth:`to_state`."""
+    def from_state(cls, config: KinematicsConfig,
+                   state: dict[str, Any] | SnapshotReader) -> ModelSelector:
+        """Rebuild from :meth:`to_state`; SnapshotError naming the field for a value
+        :meth:`to_state` cannot have written."""
+        r = state if isinstance(state, SnapshotReader) else SnapshotReader(state, "selector")
         s = cls(config)
-        s.rigid_memory = bool(state["rigid_memory"])
-        s.history = DeltaHistory.from_state(state["history"])
+        s.rigid_memory = r.boolean("rigid_memory")
+        s.history = DeltaHistory.from_state(r.map("history"), config.history_capacity)
         return s
 
 

@@ -6,9 +6,15 @@ same key (msgpack, or JSON with ``?format=json``), and restarts the demonstratio
 A reset publishes nothing: the next model is the one of the first hand body of the new
 demonstration; until then ``get`` answers the empty model (``updates`` 0, ``stamp_ns`` 0, type
 unknown), as at a first start (docs/protocol.md). A rejected hand body is counted under the
-estimator's reason for that body. After every update the estimator's state is written atomically
-(temporary file + rename, by a writer thread off the update path) to the state file and restored
-at start, so a killed and restarted service continues the demonstration where it was.
+reason for that body: ``frame_changed`` (its ``frame_id`` is not the demonstration's; a new
+demonstration, after a reset, adopts the frame of its first body), ``far_future`` (its stamp runs
+far ahead of the stream or of the receive clock, :mod:`services.common.stamps`), or the
+estimator's reason (:data:`~services.kinematics.estimator.RejectReason`, ``outlier`` among them).
+After every update the estimator's state is written atomically (temporary file + rename, by a
+writer thread off the update path) to the state file and restored at start, so a killed and
+restarted service continues the demonstration where it was. A state file that does not hold a
+valid estimate (any field of the wrong type, shape or range, NaN, an unknown frame, a stamp far
+ahead of the clock) is ignored with a warning naming the problem: the service starts fresh.
 """
 
 from __future__ import annotations
@@ -17,6 +23,8 @@ import argparse
 import json
 import logging
 import threading
+import time
+from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
 
@@ -25,24 +33,32 @@ from services.common.config import section_from_args
 from services.common.keys import Keys
 from services.common.protocol import HandBody, KinematicModel
 from services.common.service import BusLike, Service, ServiceLimits, stop_on_signals
+from services.common.stamps import StampLimits, StampWindow
 from services.common.state_file import StateFile
 from services.kinematics.config import KinematicsConfig
 from services.kinematics.estimator import KinematicEstimator
 
 log = logging.getLogger(__name__)
 
-SNAPSHOT_VERSION = 1
+SNAPSHOT_VERSION = 2
 
 
 class KinematicsNode:
-    """Binds a :class:`KinematicEstimator` to the bus through a :class:`Service`."""
+    """Binds a :class:`KinematicEstimator` to the bus through a :class:`Service`.
+
+    ``clock``: the receive clock (wall clock, ns) that stamps are compared with.
+    """
 
     def __init__(self, service: Service, config: KinematicsConfig,
-                 state_file: Path | None = None) -> None:
+                 state_file: Path | None = None, stamp_limits: StampLimits | None = None,
+                 clock: Callable[[], int] = time.time_ns) -> None:
         self.service = service
         self.config = config
+        self.stamp_limits = StampLimits() if stamp_limits is None else stamp_limits
+        self.clock = clock
         self.state_file = StateFile(state_file, SNAPSHOT_VERSION)
-        self.estimator = self._restore() or KinematicEstimator(config)
+        self.estimator, self.stamps = self._restore() or (KinematicEstimator(config),
+                                                          StampWindow(self.stamp_limits))
         self._latest = self.estimator.model
         self._lock = threading.Lock()
         keys = service.keys
@@ -50,38 +66,61 @@ class KinematicsNode:
         service.bus.declare_queryable(keys.kinematics_model, self.answer_model)
         service.on_reset(self.reset)
 
-    def _restore(self) -> KinematicEstimator | None:
-        doc = self.state_file.load()
-        if doc is None:
-            return None
+    def _restore(self) -> tuple[KinematicEstimator, StampWindow] | None:
+        """The estimator and stamp window of the state file, or None (absent, or not valid)."""
         try:
+            doc = self.state_file.load()
+            if doc is None:
+                return None
+            if not isinstance(doc, dict) or set(doc) != {"estimator", "stamps"}:
+                raise ValueError(f"expected the keys estimator and stamps, got {sorted(doc)}")
+            now = self.clock()
             estimator = KinematicEstimator.from_snapshot(doc["estimator"], self.config)
-        except (ValueError, KeyError, TypeError) as exc:
-            log.warning("ignoring unusable state file %s: %s", self.state_file.path, exc)
+            stamps = StampWindow.from_state(doc["stamps"], self.stamp_limits, now)
+            last = estimator.last_stamp_ns
+            problem = None if last is None else stamps.lead_problem(last, now)
+            if problem is not None:
+                raise ValueError(f"estimator.last_stamp_ns: {problem}")
+        except Exception as exc:  # whatever a corrupt file makes the restore raise: start fresh
+            log.warning("ignoring the state file %s, it does not hold a valid estimate (%s: %s); "
+                        "starting a new demonstration", self.state_file.path,
+                        type(exc).__name__, exc)
             return None
         log.info("restored kinematics state from %s (%d updates)", self.state_file.path,
                  estimator.model.updates)
-        return estimator
+        return estimator, stamps
 
     def _save(self) -> None:
-        self.state_file.save_later({"estimator": self.estimator.to_snapshot()})
+        self.state_file.save_later({"estimator": self.estimator.to_snapshot(),
+                                    "stamps": self.stamps.to_state()})
 
     def on_body(self, body: HandBody) -> None:
         if not body.initialized:
             return  # the tracker has no hand pose yet; nothing to learn from
         if body.frame_id != self.estimator.frame_id:
-            # A fresh estimator adopts the frame of its first body; a camera<->world switch in
-            # the middle of a demonstration cannot continue it, so it starts a new one.
             if self.estimator.model.updates > 0:
-                self.service.reject("frame_changed",
-                                    f"{self.estimator.frame_id} -> {body.frame_id}")
+                # a demonstration is estimated in one frame; a body in another cannot continue
+                # it (and must not end it): refused until a reset starts a new one
+                self.service.reject("frame_changed", f"hand body at {body.stamp_ns} ns in "
+                                    f"{body.frame_id!r}, the demonstration is in "
+                                    f"{self.estimator.frame_id!r} (reset to start a new one)")
+                return
             self.estimator = KinematicEstimator(self.config, frame_id=body.frame_id)
+        received = self.clock()
+        far = self.stamps.check(body.stamp_ns, received)
+        if far is not None:
+            self.service.reject("far_future", f"hand body: {far}")
+            return
         with self.service.latency.measure("update"):
             result = self.estimator.update(body.stamp_ns, body.pose, body.covariance[:6, :6])
         if result.reason is not None:
-            self.service.reject(result.reason, f"hand body at {body.stamp_ns} ns")
+            detail = f": {result.note}" if result.note else ""
+            self.service.reject(result.reason, f"hand body at {body.stamp_ns} ns{detail}")
             return
+        if result.note:
+            log.warning("kinematics: %s", result.note)
         assert result.model is not None
+        self.stamps.accept(body.stamp_ns, received)
         self._publish(result.model)
         self._save()
 
@@ -93,8 +132,10 @@ class KinematicsNode:
         self.service.publish(keys.kinematics_model, message)
 
     def reset(self) -> None:
-        """Forget the demonstration; publish nothing until its first hand body (module docstring)."""
+        """Forget the demonstration (and the stream's stamps: a new one may bring another clock);
+        publish nothing until its first hand body (module docstring)."""
         self.estimator.reset()
+        self.stamps.forget()
         with self._lock:
             self._latest = self.estimator.model
         self._save()
@@ -109,9 +150,10 @@ class KinematicsNode:
 
 
 def run(bus: BusLike, keys: Keys, config: KinematicsConfig, stop: threading.Event,
-        state_file: Path | None = None, limits: ServiceLimits | None = None) -> None:
+        state_file: Path | None = None, stamp_limits: StampLimits | None = None,
+        limits: ServiceLimits | None = None) -> None:
     service = Service("kinematics", bus, keys, limits)
-    node = KinematicsNode(service, config, state_file)
+    node = KinematicsNode(service, config, state_file, stamp_limits)
     service.run(stop)
     node.state_file.flush()
 
@@ -124,10 +166,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def main(args: argparse.Namespace) -> int:
     config = section_from_args(args, "kinematics")
+    stamp_limits = section_from_args(args, "stamps")
     stop = threading.Event()
     stop_on_signals(stop)
     base = section_from_args(args, "zenoh")
     with Bus(options_from_args(args, base)) as bus:
         print("kinematics ready", flush=True)
-        run(bus, Keys(args.rig), config, stop, args.state_file, section_from_args(args, "limits"))
+        run(bus, Keys(args.rig), config, stop, args.state_file, stamp_limits,
+            section_from_args(args, "limits"))
     return 0

@@ -13,6 +13,7 @@ from hypothesis import strategies as st
 
 from services.common.protocol import KinematicModel
 from services.common.se3 import se3_exp
+from services.common.snapshot import SnapshotError
 from services.kinematics.config import KinematicsConfig
 from services.kinematics.estimator import (
     REJECT_REASONS,
@@ -20,6 +21,7 @@ from services.kinematics.estimator import (
     RejectReason,
     UpdateResult,
     canonical_axis_sign,
+    chi2_quantile_of_sigmas,
 )
 from services.kinematics.filters import revolute_delta
 from tests.kinematics import (
@@ -198,16 +200,27 @@ def test_noisy_prismatic_axis_within_3_degrees(seed: int) -> None:
 
 
 def test_free_motion_is_disconnected() -> None:
+    """Free motion that looks like a joint for a while (a revolute posterior near 1 after a
+    dozen frames) and then leaves it: the poses that jump off that confident prediction are held
+    back as outliers until their run is long enough, then the gate yields
+    (docs/estimation.md#input-gates) and the evidence makes it disconnected."""
     rng = np.random.default_rng(0)
-    est = KinematicEstimator()
+    cfg = KinematicsConfig()
+    est = KinematicEstimator(cfg)
     T = np.eye(4)
     T[:3, 3] = (0.0, 0.0, 0.6)
     xi = np.zeros(6)
+    results = []
     for k in range(120):
         xi = 0.9 * xi + rng.normal(scale=[0.05, 0.05, 0.05, 0.3, 0.3, 0.3])
         T = se3_exp(xi / 30.0) @ T
-        b = accepted(est.update(10**9 + k * 33_333_333, T, 1e-6 * np.eye(6)))
+        results.append(est.update(10**9 + k * 33_333_333, T, 1e-6 * np.eye(6)))
+    b = est.model
     assert b.type == "disconnected" and b.probabilities["disconnected"] > 0.9
+    rejected = [r.reason for r in results if r.reason is not None]
+    assert set(rejected) <= {"outlier"}
+    assert len(rejected) <= 2 * cfg.outlier_run_count  # a run or two, never the stream
+    assert any(r.note.startswith("outlier gate yields") for r in results)
 
 
 # --------------------------------------------------------------------------------------------
@@ -260,6 +273,8 @@ def test_bad_inputs_are_rejected_with_their_reason_not_raised() -> None:
     bad_T[0, 0] = np.nan
     negative = C.copy()
     negative[2, 2] = -1.0
+    far_T = T.copy()
+    far_T[:3, 3] += (1000.0, 0.0, 0.0)  # 1 km away: more than max_hand_displacement_m
     cases: list[tuple[Any, Any, Any, RejectReason]] = [
         (stamp, bad_T, C, "non_finite"),
         (stamp, T, np.full((6, 6), np.inf), "non_finite"),
@@ -268,7 +283,10 @@ def test_bad_inputs_are_rejected_with_their_reason_not_raised() -> None:
         (stamp, T, negative, "invalid_covariance"),
         (float(stamp), T, C, "invalid_stamp"),
         (True, T, C, "invalid_stamp"),
+        (-1, T, C, "invalid_stamp"),
+        (2**63, T, C, "invalid_stamp"),  # beyond int64: no state file could hold it
         (stamp, "pose", C, "invalid_value"),
+        (stamp, far_T, C, "outlier"),
         (samples[4][0], T, C, "duplicate_stamp"),
         (samples[2][0], T, C, "out_of_order"),
     ]
@@ -400,7 +418,10 @@ def test_config_defaults_and_checks() -> None:
     for bad in ({"likelihood_sample_num": 0}, {"history_capacity": 101},
                 {"history_capacity": 100}, {"prior_disconnected": 0.0},
                 {"likelihood_aggregation": "median"}, {"prismatic_initial_variance": -1.0},
-                {"max_prediction_dt_s": float("nan")}):
+                {"max_prediction_dt_s": float("nan")}, {"outlier_gate_sigmas": 0.0},
+                {"outlier_gate_min_probability": 0.0}, {"outlier_gate_min_probability": 1.5},
+                {"max_hand_displacement_m": -1.0}, {"outlier_run_count": 0},
+                {"outlier_run_s": -0.1}):
         with pytest.raises(ValueError):
             KinematicsConfig(**bad)  # type: ignore[arg-type]
 
@@ -425,3 +446,215 @@ def test_type_stays_unknown_while_a_rotation_is_below_the_revolute_start() -> No
         b = accepted(est.update(*s))
         if est.prismatic is not None and b.updates >= cfg.min_updates_for_type:
             assert b.type == "prismatic"
+
+
+# --------------------------------------------------------------------------------------------
+# Input gates (docs/estimation.md#input-gates)
+# --------------------------------------------------------------------------------------------
+
+GATED = revolute_joint([0.1, 1.0, 0.2], [0.2, -0.1, 0.7], 0.10)
+
+
+def _gated_demo(seed: int = 3) -> list[Sample]:
+    """A revolute demonstration with 1 mm / 0.1 deg noise, 3 s of turning then 1 s of hold
+    (121 samples)."""
+    return demo(GATED, math.pi / 2, duration_s=3.0, hold_s=1.0, seed=seed, sigma_t=0.001,
+                sigma_r=math.radians(0.1))
+
+
+def _shifted(sample: Sample, offset_m: Array) -> Sample:
+    stamp, T, C = sample
+    T = T.copy()
+    T[:3, 3] += offset_m
+    return stamp, T, C
+
+
+def test_chi2_quantile_of_sigmas_matches_scipy() -> None:
+    from scipy.stats import chi2, norm
+
+    for sigmas in (1.0, 4.0, 8.0, 20.0):
+        expected = chi2.isf(2.0 * norm.sf(sigmas), 6)
+        assert chi2_quantile_of_sigmas(sigmas, 6) == pytest.approx(expected, rel=1e-9)
+    assert chi2_quantile_of_sigmas(8.0, 2) == pytest.approx(chi2.isf(2.0 * norm.sf(8.0), 2))
+    huge = [chi2_quantile_of_sigmas(s, 6) for s in (30.0, 40.0, 1000.0)]  # erfc underflows
+    assert huge == sorted(huge) and math.isfinite(huge[-1])
+
+
+@pytest.mark.parametrize("offset_m", [0.05, 0.5, 1000.0])
+def test_one_outlier_pose_leaves_a_confident_joint_unchanged(offset_m: float) -> None:
+    """A single in-order pose 5 cm, 50 cm or 1 km off a converged revolute joint is rejected as an
+    outlier: the estimate goes on exactly as if the pose had never arrived."""
+    samples = _gated_demo()
+    _, clean = run(samples[:80] + samples[81:])
+    assert clean[-1].type == "revolute" and clean[-1].probabilities["revolute"] > 0.999
+    gated = KinematicEstimator()
+    for s in samples[:80]:
+        accepted(gated.update(*s))
+    before = gated.model
+    assert before.probabilities["revolute"] > 0.999  # confident: the gate applies
+    bad = gated.update(*_shifted(samples[80], unit(np.array([1.0, -2.0, 0.5])) * offset_m))
+    assert (bad.model, bad.reason) == (None, "outlier")
+    assert ("Mahalanobis" if offset_m < 3.0 else "first pose of the demonstration") in bad.note
+    assert gated.model is before
+    for s, expected in zip(samples[81:], clean[80:], strict=True):
+        _assert_same_belief(accepted(gated.update(*s)), expected)
+
+
+def test_an_outlier_before_any_joint_is_confident_is_refused_by_the_displacement_bound() -> None:
+    samples = _gated_demo()
+    est = KinematicEstimator()
+    for s in samples[:3]:
+        accepted(est.update(*s))
+    assert est.model.type == "unknown"
+    result = est.update(*_shifted(samples[3], np.array([0.0, 0.0, 1000.0])))
+    assert result.reason == "outlier" and "max_hand_displacement_m" in result.note
+    _, clean = run(samples[:3] + samples[4:])
+    for s, expected in zip(samples[4:], clean[3:], strict=True):
+        _assert_same_belief(accepted(est.update(*s)), expected)
+
+
+def test_a_regrasp_is_used_after_a_run_of_outliers() -> None:
+    """The hand slips 4 cm on the handle and keeps turning: the first poses of the new grasp are
+    outliers, then the run is long enough (``outlier_run_count`` poses over ``outlier_run_s``) and
+    the gate yields: every later pose is used, the estimate does not freeze."""
+    cfg = KinematicsConfig()
+    samples = _gated_demo()
+    slip = np.array([0.0, 0.04, 0.0])
+    stream = samples[:60] + [_shifted(s, slip) for s in samples[60:]]
+    est = KinematicEstimator(cfg)
+    results = [est.update(*s) for s in stream]
+    assert all(r.model is not None for r in results[:60])
+    outliers = [k for k, r in enumerate(results) if r.reason == "outlier"]
+    assert outliers == list(range(60, 60 + len(outliers)))  # one run, right at the slip
+    run_s = (stream[outliers[-1] + 1][0] - stream[outliers[0]][0]) * 1e-9
+    assert len(outliers) >= cfg.outlier_run_count - 1 and run_s >= cfg.outlier_run_s
+    yielded = results[outliers[-1] + 1]
+    assert yielded.model is not None and yielded.note.startswith("outlier gate yields")
+    assert all(r.model is not None for r in results[outliers[-1] + 1:])
+    assert est.model.updates == len(stream) - len(outliers)
+
+
+def test_a_far_first_pose_restarts_the_demonstration() -> None:
+    """A first pose 1 km off becomes the reference; every real pose after it is then beyond
+    ``max_hand_displacement_m``: after the run the demonstration restarts from the real hand and
+    finds the joint."""
+    cfg = KinematicsConfig()
+    samples = _gated_demo()
+    est = KinematicEstimator(cfg)
+    first = accepted(est.update(*_shifted(samples[0], np.array([1000.0, 0.0, 0.0]))))
+    assert first.updates == 1
+    results = [est.update(*s) for s in samples[1:]]
+    rejected = [r.reason for r in results if r.reason is not None]
+    assert set(rejected) == {"outlier"} and cfg.outlier_run_count - 1 <= len(rejected) <= 30
+    restarted = results[len(rejected)]
+    assert restarted.model is not None and restarted.model.updates == 1
+    assert restarted.note.startswith("demonstration restarted")
+    np.testing.assert_array_equal(restarted.model.reference_pose, samples[len(rejected) + 1][1])
+    assert est.model.type == "revolute"
+    assert est.model.updates == len(samples) - 1 - len(rejected)
+
+
+def test_the_outlier_run_survives_a_snapshot() -> None:
+    samples = _gated_demo()
+    est = KinematicEstimator()
+    for s in samples[:60]:
+        est.update(*s)
+    for s in samples[60:65]:
+        assert est.update(*_shifted(s, np.array([0.0, 0.04, 0.0]))).reason == "outlier"
+    restored = KinematicEstimator.from_snapshot(_through_wire(est.to_snapshot()), est.config)
+    for s in samples[65:]:
+        a = est.update(*_shifted(s, np.array([0.0, 0.04, 0.0])))
+        b = restored.update(*_shifted(s, np.array([0.0, 0.04, 0.0])))
+        assert (a.reason, a.note) == (b.reason, b.note)
+        if a.model is not None and b.model is not None:
+            _assert_same_belief(a.model, b.model)
+
+
+# --------------------------------------------------------------------------------------------
+# Snapshots that do not hold what to_snapshot writes
+# --------------------------------------------------------------------------------------------
+
+
+def _set(doc: dict[str, Any], path: str, value: Any) -> dict[str, Any]:
+    """``doc`` with the value at the dotted ``path`` replaced (or deleted for ``...``)."""
+    doc = _through_wire(doc)
+    *parents, key = path.split(".")
+    node = doc
+    for p in parents:
+        node = node[p]
+    if value is ...:
+        del node[key]
+    else:
+        node[key] = value
+    return doc
+
+
+def _nan_at(a: Array, index: tuple[int, ...]) -> Array:
+    a = np.array(a, dtype=float)
+    a[index] = np.nan
+    return a
+
+
+@pytest.fixture(scope="module")
+def revolute_snapshot() -> dict[str, Any]:
+    est, _ = run(_gated_demo()[:90])
+    assert est.revolute is not None and est.prismatic is not None
+    return est.to_snapshot()
+
+
+@pytest.mark.parametrize(("path", "value", "message"), [
+    ("version", 1, "unsupported snapshot version 1"),
+    ("frame_id", "mars", r"estimator.frame_id: expected one of \['camera', 'world'\]"),
+    ("frame_id", 7, "estimator.frame_id"),
+    ("updates", "many", "estimator.updates: expected an integer"),
+    ("updates", 1.5, "estimator.updates: expected an integer"),
+    ("updates", -3, "estimator.updates"),
+    ("updates", ..., "estimator.updates: missing"),
+    ("last_stamp_ns", 2**63, "estimator.last_stamp_ns"),
+    ("last_stamp_ns", 10, "does not follow stamp0_ns"),
+    ("last_stamp_ns", None, "does not follow stamp0_ns"),
+    ("stamp0_ns", "0", "estimator.stamp0_ns: expected an integer"),
+    ("reference_pose", "identity", "estimator.reference_pose: expected an array"),
+    ("reference_pose", np.full((4, 4), np.nan), "estimator.reference_pose: contains NaN"),
+    ("reference_pose", 2.0 * np.eye(4), "not a rigid transform"),
+    ("reference_covariance", np.eye(3), r"expected shape \(6, 6\)"),
+    ("revolute.P", np.eye(3), r"estimator.revolute.P: expected shape \(12, 12\), got \(3, 3\)"),
+    ("revolute.q", float("nan"), "estimator.revolute.q: nan is not finite"),
+    ("revolute.q", "1.0", "estimator.revolute.q: expected a number"),
+    ("revolute.axis", np.array([0.0, 0.0, 2.0]), "estimator.revolute.axis: not a unit vector"),
+    ("revolute.basis", np.ones((3, 2)), "estimator.revolute.basis: not an orthonormal"),
+    ("revolute", [], "estimator.revolute: expected a map"),
+    ("prismatic.K", "K", "estimator.prismatic.K: expected an array"),
+    ("rigid.S", -np.eye(6), "estimator.rigid.S: negative variance"),
+    ("disconnected.z", np.zeros((4, 4)), "estimator.disconnected.z: not a rigid transform"),
+    ("selector.rigid_memory", 1, "estimator.selector.rigid_memory: expected true/false"),
+    ("selector.history.n", 10**6, "estimator.selector.history.n"),
+    ("selector.history.capacity", 128, "history.capacity"),
+    ("selector.history.stride", 3, "not a power of 2"),
+    ("log_scores", np.array([np.nan, 0.0, 0.0, 0.0]), "estimator.log_scores: contains NaN"),
+    ("log_scores", np.full(4, -np.inf), "estimator.log_scores: no finite score"),
+    ("outliers", None, "estimator.outliers: expected an integer"),
+    ("innovation.covariance", np.eye(5), r"estimator.innovation.covariance: expected shape"),
+    ("gate_yields", "no", "estimator.gate_yields: expected true/false"),
+])
+def test_a_snapshot_with_a_bad_value_is_refused_naming_it(
+        revolute_snapshot: dict[str, Any], path: str, value: Any, message: str) -> None:
+    with pytest.raises(SnapshotError, match=message):
+        KinematicEstimator.from_snapshot(_set(revolute_snapshot, path, value), KinematicsConfig())
+
+
+def test_a_nan_deep_in_a_filter_is_refused(revolute_snapshot: dict[str, Any]) -> None:
+    for path in ("revolute.P", "revolute.K", "prismatic.S", "selector.history.data"):
+        *parents, key = path.split(".")
+        node = revolute_snapshot
+        for p in parents:
+            node = node[p]
+        bad = _set(revolute_snapshot, path, _nan_at(node[key], (1, 1)))
+        with pytest.raises(SnapshotError, match=f"estimator.{path}: contains NaN"):
+            KinematicEstimator.from_snapshot(bad, KinematicsConfig())
+
+
+def test_a_snapshot_that_is_not_a_map_is_refused() -> None:
+    for doc in (None, [], "estimator", 3):
+        with pytest.raises(SnapshotError, match="estimator: expected a map"):
+            KinematicEstimator.from_snapshot(doc, KinematicsConfig())  # type: ignore[arg-type]

@@ -1,6 +1,6 @@
 """predict_hand_pose: reproduces the demonstrated hand poses, extrapolates with dq, propagates the
 model covariance with the exact Jacobian, and predicts the same from the estimator's model before
-and after the wire."""
+and after the wire; predicted_pose is its pose alone."""
 
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ from services.common import se3
 from services.common.protocol import KinematicModel, PrismaticParams, RevoluteParams
 from services.kinematics.estimator import KinematicEstimator
 from services.kinematics.filters import rotate_axis, tangent_basis
-from services.kinematics.prediction import predict_hand_pose
+from services.kinematics.prediction import predict_hand_pose, predicted_pose
 from tests.kinematics import Sample, demo, prismatic_joint, revolute_joint, unit
 
 Array = np.ndarray
@@ -135,3 +135,18 @@ def test_the_estimators_model_predicts_the_same_after_the_wire() -> None:
     assert a is not None and w is not None
     np.testing.assert_array_equal(a[0], w[0])  # the round trip keeps every bit
     np.testing.assert_array_equal(a[1], w[1])
+
+
+def test_predicted_pose_is_the_pose_of_predict_hand_pose() -> None:
+    rng = np.random.default_rng(4)
+    for kind in ("prismatic", "revolute"):
+        m = _model(kind, rng)
+        for stamp in (m.stamp_ns, m.stamp_ns + 33_333_333, m.stamp_ns + 7 * 10**9):
+            full = predict_hand_pose(m, stamp)
+            assert full is not None
+            np.testing.assert_array_equal(predicted_pose(m, stamp), full[0])
+    T_ref = se3.se3_exp(np.array([0.1, 0.2, 0.6, 0.3, -0.2, 0.1]))
+    rigid = KinematicModel(type="rigid", probabilities=PROBABILITIES, reference_pose=T_ref)
+    np.testing.assert_array_equal(predicted_pose(rigid, 10**9), T_ref)
+    for kind in ("unknown", "disconnected", "revolute"):  # revolute without its parameters
+        assert predicted_pose(replace(rigid, type=kind), 10**9) is None

@@ -7,9 +7,15 @@ and its ``reset`` answer.
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import json
+import logging
+import subprocess
+import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -19,7 +25,9 @@ from services.common.keys import Keys
 from services.common.protocol import Ack, HandBody, KinematicModel, LandmarkStates
 from services.common.se3 import se3_exp, skew
 from services.common.service import Service
+from services.common.state_file import StateFile
 from services.kinematics.config import KinematicsConfig
+from services.kinematics.service import SNAPSHOT_VERSION as STATE_VERSION
 from services.kinematics.service import KinematicsNode
 from services.synthetic.generator import generate
 from services.synthetic.replay import landmark_messages
@@ -63,9 +71,10 @@ def _assert_the_revolute_joint(model: KinematicModel) -> None:
 class FakeKinematics(ServiceHarness):
     """A kinematics node on the fake bus, with the models it publishes in :attr:`models`."""
 
-    def __init__(self, bus: FakeBus | None = None) -> None:
+    def __init__(self, bus: FakeBus | None = None, state_file: Path | None = None,
+                 clock: Callable[[], int] = time.time_ns) -> None:
         super().__init__("kinematics", KEYS, bus)
-        KinematicsNode(self.service, KinematicsConfig())
+        self.node = KinematicsNode(self.service, KinematicsConfig(), state_file, clock=clock)
         self.models = self.record(KEYS.kinematics_model, KinematicModel)
 
     def bodies(self, *bodies: HandBody | bytes) -> None:
@@ -150,17 +159,96 @@ def test_a_body_without_a_pose_yet_is_ignored() -> None:
     assert node.model().updates == 0
 
 
-def test_a_switch_of_frame_starts_a_new_demonstration() -> None:
+def test_a_frame_change_mid_demonstration_is_refused() -> None:
+    """One body in "world" amid "camera" ones is refused and counted; the demonstration goes on as
+    if it had not come (no update lost); a run of them is refused body by body."""
+    node = FakeKinematics()
+    bodies = revolute_bodies(60)
+    node.bodies(*bodies[:30], dataclasses.replace(bodies[30], frame_id="world"), *bodies[31:50])
+    clean = FakeKinematics()
+    clean.bodies(*bodies[:30], *bodies[31:50])
+
+    assert node.stats().rejected == {"frame_changed": 1}
+    assert [m.frame_id for m in node.models] == ["camera"] * 49
+    assert all(map(_same_model, node.models, clean.models))
+    node.bodies(*(dataclasses.replace(b, frame_id="world") for b in bodies[50:]))
+    assert node.stats().rejected == {"frame_changed": 11}
+    assert len(node.models) == 49 and node.model().updates == 49
+
+
+def test_a_new_demonstration_adopts_the_frame_of_its_first_body() -> None:
     node = FakeKinematics()
     bodies = revolute_bodies(40)
     node.bodies(*bodies[:30])
+    assert node.reset().ok
     node.bodies(*(dataclasses.replace(b, frame_id="world") for b in bodies[30:]))
-
-    assert node.stats().rejected == {"frame_changed": 1}
-    after = node.models[30:]
-    assert [m.frame_id for m in node.models[:30]] == ["camera"] * 30
-    assert [(m.frame_id, m.updates) for m in after] == [("world", i) for i in range(1, 11)]
+    assert node.stats().rejected == {}
+    assert [(m.frame_id, m.updates) for m in node.models[30:]] == [("world", i) for i in range(1, 11)]
     assert node.model().frame_id == "world"
+
+
+def test_a_body_stamped_far_ahead_cannot_freeze_the_model() -> None:
+    """Stamp 2^63 - 1 (or an hour ahead of the stream) is refused as far_future and never becomes
+    the latest stamp: every later real body is used."""
+    bodies = revolute_bodies(120)
+    node = FakeKinematics()
+    node.bodies(*bodies[:50], dataclasses.replace(bodies[50], stamp_ns=2**63 - 1),
+                dataclasses.replace(bodies[50], stamp_ns=bodies[50].stamp_ns + 3600 * 10**9),
+                *bodies[50:])
+    clean = FakeKinematics()
+    clean.bodies(*bodies)
+    assert node.stats().rejected == {"far_future": 2}
+    assert len(node.models) == 120 and _same_model(node.models[-1], clean.models[-1])
+    _assert_the_revolute_joint(node.model())
+
+
+class FakeClock:
+    """A receive clock the test moves: 30 Hz by default, from a wall clock in 2025."""
+
+    def __init__(self) -> None:
+        self.now = 1_750_000_000 * 10**9
+
+    def __call__(self) -> int:
+        self.now += 33_333_333
+        return self.now
+
+
+def test_a_tracking_gap_is_fine_a_jump_of_the_stream_only_after_a_second() -> None:
+    """A gap of a minute in the stamps while the receive clock moved on too is a loss of tracking
+    (used); a minute's jump while the clock did not move is refused as far_future until the
+    stream has stayed there for stamps.resync_s (1 s), then it is the stream."""
+    clock = FakeClock()
+    node = FakeKinematics(clock=clock)
+    bodies = revolute_bodies(120)
+    node.bodies(*bodies[:40])
+    clock.now += 60 * 10**9
+    minute = 60 * 10**9
+    node.bodies(*(dataclasses.replace(b, stamp_ns=b.stamp_ns + minute) for b in bodies[40:60]))
+    assert node.stats().rejected == {} and node.model().updates == 60
+    node.bodies(*(dataclasses.replace(b, stamp_ns=b.stamp_ns + 2 * minute) for b in bodies[60:]))
+    far = node.stats().rejected["far_future"]
+    assert 29 <= far <= 31  # 1 s of the stream at 30 Hz
+    assert node.model().updates == 120 - far and node.model().stamp_ns == bodies[-1].stamp_ns + 2 * minute
+
+
+@pytest.mark.parametrize("offset_m", [0.05, 1000.0])
+def test_one_outlier_body_leaves_the_verdict_unchanged(offset_m: float) -> None:
+    """An in-order body 5 cm or 1 km off a converged revolute joint is counted as an outlier and
+    not used: the verdict stays "revolute, P = 1" and the estimate equals the clean run's."""
+    bodies = revolute_bodies(130)
+    node = FakeKinematics()
+    node.bodies(*bodies[:100])
+    assert node.model().probabilities["revolute"] == pytest.approx(1.0)
+    bad = bodies[100].pose.copy()
+    bad[:3, 3] += (offset_m, 0.0, 0.0)
+    node.bodies(dataclasses.replace(bodies[100], pose=bad))
+    assert node.stats().rejected == {"outlier": 1} and node.model().updates == 100
+    node.bodies(*bodies[101:])
+    clean = FakeKinematics()
+    clean.bodies(*bodies[:100], *bodies[101:])
+    assert _same_model(node.model(), clean.model())
+    _assert_the_revolute_joint(node.model())
+    assert node.model().probabilities["revolute"] == pytest.approx(1.0)
 
 
 def test_reset_starts_a_new_demonstration() -> None:
@@ -209,6 +297,15 @@ def _start(procs: Processes, router: str, state: Path, client: Bus):  # type: ig
     wait_until(lambda: KEYS.alive("kinematics") in client.alive(KEYS.alive_all), 20,
                what=f"kinematics liveliness; log: {output_of(p)}")
     return p
+
+
+def _kill(p: subprocess.Popen[bytes], client: Bus) -> None:
+    """kill -9, then wait until its liveliness token is gone (else the next ``_start`` could take
+    the dead process's token for the new one's)."""
+    p.kill()
+    p.wait(5)
+    wait_until(lambda: KEYS.alive("kinematics") not in client.alive(KEYS.alive_all), 20,
+               what="the killed process's token to vanish")
 
 
 def _model(bus: Bus) -> KinematicModel:
@@ -263,8 +360,7 @@ def test_a_killed_process_continues_from_its_state_file(procs: Processes, router
     wait_until(lambda: _model(client_bus).updates == 60, 20, what="60 updates")
 
     # kill -9 mid-demonstration; the restarted service continues from the snapshot
-    kin.kill()
-    kin.wait(5)
+    _kill(kin, client_bus)
     assert state.exists()
     _start(procs, router, state, client_bus)
     assert _model(client_bus).updates == 60
@@ -310,3 +406,134 @@ def test_reset_publishes_nothing_until_the_first_body(client_bus: Bus) -> None:
     assert service.published == 11
     first = _answer(node)
     assert (first.updates, first.stamp_ns, first.seq) == (1, bodies[20].stamp_ns, 10)
+
+
+# --- state files that do not hold a valid estimate ---
+
+
+def _state_after(bodies: list[HandBody], path: Path) -> dict[str, Any]:
+    """The state document a node writes after ``bodies``."""
+    node = FakeKinematics(state_file=path)
+    node.bodies(*bodies)
+    assert node.node.state_file.flush()
+    doc = StateFile(path, STATE_VERSION).load()
+    assert doc is not None
+    return doc
+
+
+def _with(doc: dict[str, Any], path: str, value: Any) -> dict[str, Any]:
+    doc = copy.deepcopy(doc)
+    *parents, key = path.split(".")
+    node = doc
+    for p in parents:
+        node = node[p]
+    if value is ...:
+        del node[key]
+    else:
+        node[key] = value
+    return doc
+
+
+def test_a_state_file_written_after_a_far_stamp_restores_and_continues(tmp_path: Path) -> None:
+    path = tmp_path / "kin.state"
+    bodies = revolute_bodies(120)
+    node = FakeKinematics(state_file=path)
+    node.bodies(*bodies[:60], dataclasses.replace(bodies[60], stamp_ns=2**63 - 1))
+    assert node.node.state_file.flush()
+    assert node.stats().rejected == {"far_future": 1}
+
+    restarted = FakeKinematics(state_file=path)
+    assert restarted.model().updates == 60
+    assert restarted.model().stamp_ns == bodies[59].stamp_ns  # not the poisoned stamp
+    restarted.bodies(*bodies[60:])
+    clean = FakeKinematics()
+    clean.bodies(*bodies)
+    assert restarted.stats().rejected == {}
+    assert _same_model(restarted.model(), clean.model())
+
+
+NAN_POSE = np.full((4, 4), np.nan)
+
+
+@pytest.mark.parametrize(("path", "value", "message"), [
+    ("estimator.updates", "many", "estimator.updates: expected an integer"),
+    ("estimator.reference_pose", NAN_POSE, "estimator.reference_pose: contains NaN"),
+    ("estimator.revolute.q", float("nan"), "estimator.revolute.q: nan is not finite"),
+    ("estimator.frame_id", "mars", "estimator.frame_id: expected one of"),
+    ("estimator.last_stamp_ns", 2**63 - 1, "estimator.last_stamp_ns: stamp 9223372036854775807"),
+    ("estimator.selector", "history", "estimator.selector: expected a map"),
+    ("estimator", [1, 2, 3], "estimator: expected a map"),
+    ("stamps.anchor", [2**63 - 1, 2**63 - 1], "stamps.anchor"),
+    ("stamps.anchor", "yesterday", "stamps.anchor"),
+    ("stamps", ..., "expected the keys estimator and stamps"),
+])
+def test_a_state_file_with_a_bad_value_is_ignored_with_a_warning(
+        tmp_path: Path, caplog: pytest.LogCaptureFixture, path: str, value: Any,
+        message: str) -> None:
+    """Wrong types, NaN, a bogus frame, a poisoned latest stamp: the service warns, naming the
+    field, starts a new demonstration, and works."""
+    state = tmp_path / "kin.state"
+    bodies = revolute_bodies(90)
+    StateFile(state, STATE_VERSION).save(_with(_state_after(bodies[:60], state), path, value))
+    with caplog.at_level(logging.WARNING, logger="services.kinematics.service"):
+        node = FakeKinematics(state_file=state)
+    warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert any("ignoring the state file" in w and message in w for w in warnings), warnings
+    assert node.model().updates == 0 and node.model().stamp_ns == 0
+    node.bodies(*bodies[60:])
+    assert node.stats().rejected == {} and node.model().updates == 30
+    assert node.model().frame_id == "camera" and np.isfinite(node.model().reference_pose).all()
+
+
+def test_a_state_file_of_an_older_version_is_ignored(tmp_path: Path,
+                                                     caplog: pytest.LogCaptureFixture) -> None:
+    state = tmp_path / "kin.state"
+    doc = _state_after(revolute_bodies(30), state)
+    StateFile(state, 1).save(doc)  # the version before stamps were kept
+    with caplog.at_level(logging.WARNING):
+        node = FakeKinematics(state_file=state)
+    assert "version 1, expected 2" in caplog.text
+    assert node.model().updates == 0
+
+
+def test_a_far_stamp_is_not_carried_across_a_restart(procs: Processes, router: str,
+                                                     client_bus: Bus, tmp_path: Path) -> None:
+    """The process refuses a body stamped 2^63 - 1; killed and restarted from its state file, it
+    continues with the real stream."""
+    state = tmp_path / "kin.state"
+    kin = _start(procs, router, state, client_bus)
+    bodies = revolute_bodies(90)
+    for b in bodies[:30]:
+        client_bus.put(KEYS.hand_body, b.to_msgpack())
+    client_bus.put(KEYS.hand_body, dataclasses.replace(bodies[30], stamp_ns=2**63 - 1).to_msgpack())
+    wait_until(lambda: _stats(client_bus)["received"] == 31, 20, what="31 bodies received")
+    assert _stats(client_bus)["rejected"] == {"far_future": 1}
+    wait_until(lambda: _model(client_bus).updates == 30, 20, what="30 updates")
+
+    _kill(kin, client_bus)
+    _start(procs, router, state, client_bus)
+    restored = _model(client_bus)
+    assert (restored.updates, restored.stamp_ns) == (30, bodies[29].stamp_ns)
+    for b in bodies[30:]:
+        client_bus.put(KEYS.hand_body, b.to_msgpack())
+    wait_until(lambda: _model(client_bus).updates == 90, 20, what="90 updates")
+    assert _stats(client_bus)["rejected"] == {}
+    _assert_the_revolute_joint(_model(client_bus))
+
+
+def test_a_corrupt_state_file_does_not_stop_the_process(procs: Processes, router: str,
+                                                        client_bus: Bus, tmp_path: Path) -> None:
+    """A state file whose fields have the wrong type: the process warns, starts fresh, works."""
+    state = tmp_path / "kin.state"
+    doc = _state_after(revolute_bodies(30), state)
+    StateFile(state, STATE_VERSION).save(_with(_with(doc, "estimator.updates", "many"),
+                                               "estimator.revolute", "not a filter"))
+    kin = _start(procs, router, state, client_bus)
+    assert kin.poll() is None
+    assert "ignoring the state file" in output_of(kin)
+    assert "estimator.updates: expected an integer" in output_of(kin)
+    assert _model(client_bus).updates == 0
+    for b in revolute_bodies(10):
+        client_bus.put(KEYS.hand_body, b.to_msgpack())
+    wait_until(lambda: _model(client_bus).updates == 10, 20, what="10 updates")
+    assert kin.poll() is None

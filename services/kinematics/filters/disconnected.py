@@ -7,6 +7,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from services.common.snapshot import SnapshotReader
 from services.kinematics.filters.geometry import gaussian_log_density, se3_log_fast
 
 Array = NDArray[np.float64]
@@ -55,8 +56,10 @@ class DisconnectedJoint:
         return {"z": np.array(self.z)}
 
     @classmethod
-    def from_state(cls, state: dict[str, Any]) -> DisconnectedJoint:
-        """Rebuild a filter from :meth:`to_state` exactly (no re-normalisation)."""
+    def from_state(cls, state: dict[str, Any] | SnapshotReader) -> DisconnectedJoint:
+        """Rebuild a filter from :meth:`to_state` exactly (no re-normalisation); SnapshotError
+        naming the field for a value :meth:`to_state` cannot have written."""
+        r = state if isinstance(state, SnapshotReader) else SnapshotReader(state, "disconnected")
         f = cls()
-        f.z = np.array(state["z"], dtype=float)
+        f.z = r.pose("z")
         return f

@@ -29,6 +29,7 @@ from services.common.se3 import (  # noqa: F401 - the float kernels, re-exported
     so3_log_fast,
 )
 from services.common.se3 import se3_adjoint_fast as adjoint_fast  # noqa: F401
+from services.common.snapshot import SnapshotError, SnapshotReader
 from services.kinematics.config import KinematicsConfig
 
 Array = NDArray[np.float64]
@@ -72,6 +73,18 @@ def tangent_basis(u: Array) -> Array:
     a0, a1, a2 = t1[0] / n, t1[1] / n, t1[2] / n
     b0, b1, b2 = y * a2 - z * a1, z * a0 - x * a2, x * a1 - y * a0  # t2 = u x t1
     return np.array([[a0, b0], [a1, b1], [a2, b2]])
+
+
+def axis_basis(state: SnapshotReader, u: Array, key: str = "basis") -> Array:
+    """The tangent basis (3x2) of the unit axis ``u`` restored from ``state[key]``: orthonormal
+    and orthogonal to ``u`` (1e-6), else SnapshotError."""
+    B = state.array(key, (3, 2))
+    M = np.column_stack([B, u])
+    err = float(np.abs(M.T @ M - np.eye(3)).max())
+    if err > 1e-6:
+        raise SnapshotError(f"{state.path}.{key}: not an orthonormal basis of the plane "
+                            f"orthogonal to the axis (error {err:.3g})")
+    return B
 
 
 def rotate_axis(u: Array, B: Array, b: Array) -> tuple[Array, Array]:

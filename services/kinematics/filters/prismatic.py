@@ -8,8 +8,10 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from services.common.snapshot import SnapshotReader
 from services.kinematics.config import KinematicsConfig
 from services.kinematics.filters.geometry import (
+    axis_basis,
     ekf_correct,
     gaussian_log_density,
     prismatic_twist_jacobian,
@@ -192,13 +194,16 @@ class PrismaticJoint:
                 "S": self.S.copy(), "K": self.K.copy()}
 
     @classmethod
-    def from_state(cls, config: KinematicsConfig, state: dict[str, Any]) -> PrismaticJoint:
-        """Rebuild a filter from :meth:`to_state` exactly (no re-normalisation)."""
-        f = cls(config, np.array(state["axis"], dtype=float), float(state["q"]),
-                qdot=float(state["qdot"]), offset=state["offset"], P=state["P"],
-                basis=state["basis"])
-        f.u = np.array(state["axis"], dtype=float)  # exact, not re-normalised
-        f.y = np.array(state["y"], dtype=float)
-        f.S = np.array(state["S"], dtype=float)
-        f.K = np.array(state["K"], dtype=float)
+    def from_state(cls, config: KinematicsConfig,
+                   state: dict[str, Any] | SnapshotReader) -> PrismaticJoint:
+        """Rebuild a filter from :meth:`to_state` exactly (no re-normalisation); SnapshotError
+        naming the field for a value :meth:`to_state` cannot have written."""
+        r = state if isinstance(state, SnapshotReader) else SnapshotReader(state, "prismatic")
+        u = r.unit_vector("axis")
+        f = cls(config, u, r.number("q"), qdot=r.number("qdot"), offset=r.array("offset", (3,)),
+                P=r.covariance("P", 7), basis=axis_basis(r, u))
+        f.u = u  # exact, not re-normalised
+        f.y = r.array("y", (3,))
+        f.S = r.covariance("S", 3)
+        f.K = r.array("K", (7, 3))
         return f

@@ -9,8 +9,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 from services.common.se3 import skew
+from services.common.snapshot import SnapshotReader
 from services.kinematics.config import KinematicsConfig
 from services.kinematics.filters.geometry import (
+    axis_basis,
     cross3,
     ekf_correct,
     gaussian_log_density,
@@ -243,15 +245,19 @@ class RevoluteJoint:
                 "P": self.P.copy(), "y": self.y.copy(), "S": self.S.copy(), "K": self.K.copy()}
 
     @classmethod
-    def from_state(cls, config: KinematicsConfig, state: dict[str, Any]) -> RevoluteJoint:
-        """Rebuild a filter from :meth:`to_state` exactly (no re-normalisation)."""
-        f = cls(config, np.array(state["axis"], dtype=float), np.array(state["point"], dtype=float),
-                float(state["q"]), qdot=float(state["qdot"]),
-                reference_correction=state["reference_correction"], P=state["P"],
-                basis=state["basis"])
-        f.u = np.array(state["axis"], dtype=float)  # exact, not re-normalised or re-projected
-        f.p = np.array(state["point"], dtype=float)
-        f.y = np.array(state["y"], dtype=float)
-        f.S = np.array(state["S"], dtype=float)
-        f.K = np.array(state["K"], dtype=float)
+    def from_state(cls, config: KinematicsConfig,
+                   state: dict[str, Any] | SnapshotReader) -> RevoluteJoint:
+        """Rebuild a filter from :meth:`to_state` exactly (no re-normalisation); SnapshotError
+        naming the field for a value :meth:`to_state` cannot have written."""
+        r = state if isinstance(state, SnapshotReader) else SnapshotReader(state, "revolute")
+        u = r.unit_vector("axis")
+        p = r.array("point", (3,))
+        f = cls(config, u, p, r.number("q"), qdot=r.number("qdot"),
+                reference_correction=r.pose("reference_correction"), P=r.covariance("P", 12),
+                basis=axis_basis(r, u))
+        f.u = u  # exact, not re-normalised or re-projected
+        f.p = p
+        f.y = r.array("y", (6,))
+        f.S = r.covariance("S", 6)
+        f.K = r.array("K", (12, 6))
         return f

@@ -7,6 +7,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from services.common.snapshot import SnapshotReader
 from services.kinematics.filters.geometry import (
     gaussian_log_density,
     rotation_angles_from_trace,
@@ -66,9 +67,11 @@ class RigidJoint:
         return {"z": np.array(self.z), "S": np.array(self.S)}
 
     @classmethod
-    def from_state(cls, state: dict[str, Any]) -> RigidJoint:
-        """Rebuild a filter from :meth:`to_state` exactly (no re-normalisation)."""
+    def from_state(cls, state: dict[str, Any] | SnapshotReader) -> RigidJoint:
+        """Rebuild a filter from :meth:`to_state` exactly (no re-normalisation); SnapshotError
+        naming the field for a value :meth:`to_state` cannot have written."""
+        r = state if isinstance(state, SnapshotReader) else SnapshotReader(state, "rigid")
         f = cls()
-        f.z = np.array(state["z"], dtype=float)
-        f.S = np.array(state["S"], dtype=float)
+        f.z = r.pose("z")
+        f.S = r.covariance("S", 6)
         return f
