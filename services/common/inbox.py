@@ -12,7 +12,7 @@ Policy (``docs/protocol.md``, "Backpressure"):
   order; when it is full the *oldest* sample is dropped and counted under its key, so a service
   that falls behind catches up on recent data instead of lagging ever further.
 - **Latest inputs** (a model used only as a prior): one slot per key; a newer sample replaces an
-  unread one and the replaced one is counted.
+  unread one, which is counted as *superseded* (not lost: its newer version is used).
 - **Control calls** (``reset``, work scheduled with ``call_soon``): never dropped, and handled
   before waiting samples.
 """
@@ -39,6 +39,7 @@ class Inbox:
         self._fifo: deque[tuple[str, Event]] = deque()
         self._latest: dict[str, Event] = {}
         self._dropped: dict[str, int] = {}
+        self._superseded: dict[str, int] = {}
 
     def put(self, key: str, event: Event) -> None:
         """Queue a FIFO sample; drops (and counts) the oldest sample when full."""
@@ -50,10 +51,10 @@ class Inbox:
             self._cond.notify()
 
     def put_latest(self, key: str, event: Event) -> None:
-        """Keep only the newest unread sample of ``key``; a replaced one is counted."""
+        """Keep only the newest unread sample of ``key``; a replaced one is counted superseded."""
         with self._cond:
             if key in self._latest:
-                self._dropped[key] = self._dropped.get(key, 0) + 1
+                self._superseded[key] = self._superseded.get(key, 0) + 1
             self._latest[key] = event
             self._cond.notify()
 
@@ -81,6 +82,11 @@ class Inbox:
         """Dropped samples by key since start (a copy)."""
         with self._cond:
             return dict(self._dropped)
+
+    def superseded(self) -> dict[str, int]:
+        """Latest-only samples replaced unread by a newer one, by key (a copy)."""
+        with self._cond:
+            return dict(self._superseded)
 
     def __len__(self) -> int:
         with self._cond:

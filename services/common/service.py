@@ -156,13 +156,20 @@ class Service:
         return ServiceStats(service=self.name, uptime_s=time.monotonic() - self.started,
                             received=self.received, published=self.published,
                             dropped=self.dropped + self.inbox_dropped(), rejected=rejected,
-                            latency_ms=self.latency.summary(), skipped=dict(self.skipped))
+                            latency_ms=self.latency.summary(), skipped=self._skipped())
 
     # --- wiring ---
 
     def publish(self, key: str, message: Message, *, frame: bool = False) -> None:
         self.bus.put(key, message.to_msgpack(), frame=frame)
         self.published += 1
+
+    def _skipped(self) -> dict[str, int]:
+        skipped = dict(self.skipped)
+        superseded = sum(self._inbox.superseded().values())
+        if superseded:
+            skipped["superseded"] = skipped.get("superseded", 0) + superseded
+        return skipped
 
     def inbox_dropped(self) -> int:
         """Input samples dropped because the loop fell behind (all keys)."""

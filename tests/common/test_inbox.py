@@ -45,7 +45,8 @@ def test_latest_inputs_keep_only_the_newest() -> None:
     inbox.put("lm", _event("landmarks"))
     assert inbox.take(0)[1][0] == 3  # type: ignore[index]
     assert inbox.take(0)[1][0] == "landmarks"  # type: ignore[index]
-    assert inbox.dropped() == {"model": 3}
+    assert inbox.dropped() == {}
+    assert inbox.superseded() == {"model": 3}  # not lost: the newest is used
 
 
 def test_take_waits_for_a_producer() -> None:
