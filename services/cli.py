@@ -1,5 +1,8 @@
 """``handkse`` command line: one subcommand per process or operator action.
 
+One module although it is long: the parser is one table of commands; each command's work lives
+in its own package (``add_arguments``/``main`` of the service modules), only the glue is here.
+
 Every subcommand takes the Zenoh options spelled as in Zenoh's examples (``-m -e -l
 --no-multicast-scouting -c``) plus ``--rig``, ``--config FILE`` and ``--set section.key=value``.
 Heavy modules are imported inside each command, so ``handkse --help`` is fast and optional

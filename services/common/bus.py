@@ -1,5 +1,8 @@
 """The Zenoh bus: session from options, publish/subscribe/query helpers, liveliness.
 
+One module although it is long: it is the only one allowed to import zenoh, so everything that
+touches Zenoh's API (options, sessions, queries, liveliness) lives here.
+
 This is the only module that imports zenoh (1.x API). Everything else sees bytes and plain
 callbacks, so a service can be driven by an in-memory fake in unit tests.
 

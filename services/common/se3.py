@@ -1,5 +1,8 @@
 """SO(3) and SE(3) maps: exp, log, adjoint and left Jacobians.
 
+One module although it is long: it is the one home of these maps, each in an array form and a
+Python-float ``*_fast`` form that must agree (tested pairwise), so they stay side by side.
+
 Conventions (the same everywhere in handkse):
 
 - A pose ``T_a_b`` is a 4x4 homogeneous ``float64`` matrix mapping points in frame b to frame a.

@@ -1,5 +1,8 @@
 """``handkse models prepare``: MediaPipe's hand models as ONNX, in a user cache with a manifest.
 
+One module although it is long: fetch, convert, patch and check are the steps of one job whose
+manifest ties them together; splitting them would spread the manifest's invariants.
+
 Source: the PyPI wheel ``mediapipe==0.10.14`` (Apache-2.0), fetched with ``pip download --no-deps``
 (never installed). The palm-detection and hand-landmark ``.tflite`` models (full and lite) are
 extracted, converted to ONNX with ``tflite2onnx`` (plus a fix for the palm models' fp16 PReLU

@@ -29,7 +29,7 @@ import numpy as np
 
 from services.common.keys import Keys
 from services.common.protocol import Hand, HandLandmarks, ProtocolError, RgbdFrame
-from services.common.service import BusLike, Service, stop_on_signals
+from services.common.service import BusLike, Service, ServiceLimits, stop_on_signals
 from services.detector.backproject import to_world
 from services.detector.config import DEVICES, VARIANTS, DetectorConfig
 from services.detector.pipeline import FrameResult, HandPipeline
@@ -160,11 +160,12 @@ def _hand_over(service: Service, take: Callable[[float], T | None], handle: Call
 
 def run(bus: FrameBus, keys: Keys, config: DetectorConfig, stop: threading.Event,
         source: FrameSource | None = None, publish_frames: bool = False,
-        max_frames: int | None = None, ready: Callable[[], None] | None = None) -> DetectorNode:
+        max_frames: int | None = None, ready: Callable[[], None] | None = None,
+        limits: ServiceLimits | None = None) -> DetectorNode:
     """Run the detector until ``stop`` (or the end of ``source``, or ``max_frames``)."""
     pipeline = HandPipeline.from_config(config)
     log.info("detector models loaded; providers %s", pipeline.providers)
-    service = Service("detector", bus, keys)
+    service = Service("detector", bus, keys, limits)
     node = DetectorNode(service, pipeline)
 
     def count_and_stop() -> None:
@@ -186,6 +187,11 @@ def run(bus: FrameBus, keys: Keys, config: DetectorConfig, stop: threading.Event
             taken += 1
             service.received = taken + slot.skipped  # every frame that arrived
             service.dropped = slot.skipped
+            limit = service.limits.max_frame_payload_bytes
+            if len(payload) > limit:
+                service.reject("too_large", f"{len(payload)} bytes on {keys.camera_rgbd} (limit "
+                                            f"{limit}, limits.max_frame_payload_bytes)")
+                return
             node.on_payload(payload)
 
         threads.append(threading.Thread(
@@ -321,7 +327,8 @@ def main(args: argparse.Namespace) -> int:
         with Bus(options_from_args(args, section_from_args(args, "zenoh"))) as bus:
             node = run(bus, Keys(args.rig), config, stop, source=source,
                        publish_frames=args.publish_frames, max_frames=args.max_frames,
-                       ready=lambda: print("detector ready", flush=True))
+                       ready=lambda: print("detector ready", flush=True),
+                       limits=section_from_args(args, "limits"))
             log.info("detector processed %d frames", node.frames)
             time.sleep(0.2)  # let the last landmarks leave before the session closes
     except (ModelsMissing, SourceUnavailable, DeviceUnavailable, FileNotFoundError) as exc:
