@@ -1,4 +1,9 @@
-"""Back-projection with registered depth: exactness, holes, depth edges, resolution."""
+"""Back-projection with registered depth: exactness, holes, depth edges, resolution.
+
+Tolerances (docs/testing.md#tolerances): back-projecting a pixel is three multiplications and a
+division on values below 1e3, so 1e-12 m holds on any BLAS (~100 eps); the round trip through
+projection divides by depth once more (1e-9 px).
+"""
 
 from __future__ import annotations
 

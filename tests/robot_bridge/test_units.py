@@ -1,4 +1,9 @@
-"""Pure parts of the robot bridge: controller law, trajectory, safety clamps, config."""
+"""Pure parts of the robot bridge: controller law, trajectory, safety clamps, config.
+
+Tolerances (docs/testing.md#tolerances): 1e-9 for closed forms on O(1) values (margin 1e5 over
+round-off); 1e-7 for a 6x6 solve with the Panda's Jacobian (condition number up to ~1e3 here);
+1e-6 for finite differences (truncation error of the step).
+"""
 
 from __future__ import annotations
 
