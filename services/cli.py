@@ -411,7 +411,7 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     p.add_argument("--rate", type=non_negative_float, default=1.0,
                    help="replay speed factor (default 1)")
     p.add_argument("--no-robot", action="store_true",
-                   help="stop after the estimate (skip the simulated articulation)")
+                   help="stop after the estimate (no robot bridge, no articulation)")
     p.add_argument("--view", action="store_true",
                    help="show the run in Rerun's web viewer (handkse view; extra 'view')")
     p.add_argument("--web-port", type=int, default=9090, help="with --view: web viewer port")
@@ -458,6 +458,8 @@ MODULE_COMMANDS: list[tuple[str, str, str]] = [
     ("models", "services.detector.models", "prepare or show the ONNX hand models"),
     ("robot-bridge", "services.robot_bridge.service",
      "run the robot bridge (MuJoCo simulation or a real Panda)"),
+    ("articulate", "services.robot_bridge.client",
+     "ask the robot bridge to articulate along the current model (--dry-run: the plan only)"),
     ("robot-trials", "services.evaluation.robot_trials",
      "Table III in simulation: articulate key and window lock along each method's estimates"),
     ("view", "services.view.service",

@@ -2,26 +2,36 @@
 
 Starts a Zenoh router, the tracker and the kinematics service as separate processes on a TCP
 loopback endpoint, replays a synthetic demonstration (default: the key, participant 3) in real
-time from this process, prints live progress (type, probabilities, tangent error against the
-ground truth), then queries the final model with ``get`` and prints it beside the truth.
-With ``view``, ``handkse view`` runs beside them as one more client (Rerun's web viewer on
-127.0.0.1; the URL is printed) and stays up, on a terminal, until Enter is pressed.
+time from this process, stamped with the wall clock as ``handkse replay`` does, prints live
+progress (type, probabilities, tangent error against the ground truth), then queries the final
+model with ``get`` and prints it beside the truth.
+
+With the robot (the default), ``handkse robot-bridge --sim-object synthetic:OBJECT:P:SEED`` runs
+as one more process: its simulated Panda holds the demonstration's true object, placed through
+the bridge's camera calibration. The demo then asks it to articulate exactly as ``handkse
+articulate`` does (:func:`services.robot_bridge.client.articulate`, the demonstrated task: 180 deg
+for the key and the window lock, else the demonstrated stroke, the way the human moved) and
+prints the bridge's answer. With ``view``, ``handkse view`` runs beside them as one more client
+(Rerun's web viewer on 127.0.0.1; the URL is printed) and stays up, on a terminal, until Enter is
+pressed.
 """
 
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 import tempfile
 import threading
 import time
 from pathlib import Path
 
-from services.common.bus import Bus, ZenohOptions, wait_for_services
+from services.common.bus import Bus, BusError, ZenohOptions, wait_for_services
+from services.common.errors import UserError
 from services.common.keys import Keys
+from services.common.playback import PlaybackOptions, play
 from services.common.processes import ProcessGroup, client_args, free_tcp_endpoint
 from services.common.protocol import KinematicModel
-from services.common.recording import replay
 from services.evaluation.metrics import JointEstimate
 from services.evaluation.pipeline import demo_tangent_error_deg, joint_estimate
 from services.synthetic.generator import Demonstration, generate
@@ -61,8 +71,9 @@ def run_demo(object_name: str = "key", participant: int = 3, seed: int = 0, rate
              view: bool = False, view_ports: tuple[int, int] = (9090, 9876)) -> float:
     """Run the whole pipeline on one synthetic demonstration; returns the tangent error (deg).
 
-    With ``robot``, the simulated Panda then grasps the true object and articulates it along the
-    estimated model (MuJoCo), and the result with peak and mean force is printed. With ``view``,
+    With ``robot``, a robot bridge process on the simulated Panda, holding the true object, is
+    asked to articulate it along the estimated model (over the bus, as ``handkse articulate``
+    asks), and its result with peak and mean force is printed. With ``view``,
     ``handkse view`` shows the run in Rerun's web viewer (its URL is printed); ``view_ports``
     are the viewer's web and data ports on 127.0.0.1.
     """
@@ -77,6 +88,9 @@ def run_demo(object_name: str = "key", participant: int = 3, seed: int = 0, rate
     options = ZenohOptions(mode="client", connect=(endpoint,), multicast_scouting=False)
     with ProcessGroup(workdir) as group:
         group.start_pipeline(endpoint, rig, SERVICES)
+        if robot:  # starts while the demonstration plays; asked once it is estimated
+            group.start("robot_bridge", "robot-bridge", *client_args(endpoint, rig),
+                        "--sim-object", f"synthetic:{object_name}:{participant}:{seed}")
         if view:
             group.start("view", "view", *client_args(endpoint, rig), "--web-port",
                         str(view_ports[0]), "--grpc-port", str(view_ports[1]))
@@ -91,8 +105,9 @@ def run_demo(object_name: str = "key", participant: int = 3, seed: int = 0, rate
             bus.subscribe(keys.kinematics_model,
                           lambda _k, p: latest.append(KinematicModel.from_msgpack(p)))
             stop = threading.Event()
-            player = threading.Thread(target=replay, args=(messages, bus.put),
-                                      kwargs={"rate": rate, "stop": stop}, daemon=True)
+            player = threading.Thread(target=play, args=(bus, keys, messages,
+                                                         PlaybackOptions(rate=rate), stop),
+                                      daemon=True)
             t0 = time.monotonic()
             player.start()
             while player.is_alive():
@@ -101,16 +116,42 @@ def run_demo(object_name: str = "key", participant: int = 3, seed: int = 0, rate
                     print(_progress_line(latest[-1], demo, time.monotonic() - t0), flush=True)
             _wait_settled(latest)
             final = KinematicModel.from_msgpack(bus.get(keys.kinematics_model)[0][1])
-        error = print_comparison(final, demo)
+            error = print_comparison(final, demo)
+            if robot:
+                articulate_on_bridge(group, bus, keys, final, demo)
         if view and sys.stdin.isatty():
             input("\nthe viewer stays open; press Enter to stop it ")
-    if robot:
-        from services.robot_bridge.simulation import articulate_demonstration, format_result
-
-        print("\nsimulated Panda articulating the object along the estimate (MuJoCo):")
-        sim = articulate_demonstration(final, demo)
-        print(format_result(sim.result, final.type))
     return error
+
+
+def articulate_on_bridge(group: ProcessGroup, bus: Bus, keys: Keys, model: KinematicModel,
+                         demo: Demonstration) -> int | None:
+    """Ask the demo's robot bridge to articulate the demonstrated task along ``model``, as
+    ``handkse articulate`` would; print its answer. Returns the command's exit status (None: the
+    bridge did not come up; its log is printed)."""
+    from services.robot_bridge.client import ArticulateOptions, articulate
+    from services.robot_bridge.simulation import object_in_camera, task_amount
+    from services.robot_bridge.trajectory import default_duration
+
+    try:
+        group.wait_log("robot_bridge", "robot_bridge ready", 120.0)
+        wait_for_services(bus, keys, ("robot_bridge",), 30.0)
+    except (RuntimeError, TimeoutError, BusError) as exc:
+        print(f"\nthe robot bridge did not come up: {' '.join(str(exc).split())[:2000]}")
+        return None
+    ready = next(line for line in group.log("robot_bridge").splitlines()
+                 if line.startswith("robot_bridge ready"))
+    # The task comes from the demonstration; the model only supplies the joint. A model that is
+    # not a joint gets half a turn, which the bridge refuses with its reason.
+    amount = task_amount(model, object_in_camera(demo)) or math.pi
+    duration = default_duration(amount, model.type)
+    print(f"\n{ready}\n$ handkse articulate --rig {keys.rig} --amount {amount:.4f} "
+          f"--duration {duration:.1f}", flush=True)
+    try:
+        return articulate(bus, keys, ArticulateOptions(amount=amount, duration_s=duration))
+    except (UserError, BusError) as exc:
+        print(f"handkse articulate: {exc}")
+        return 2
 
 
 def _wait_settled(latest: list[KinematicModel], quiet_s: float = 1.0, timeout: float = 20.0

@@ -87,9 +87,26 @@ CASES: list[tuple[list[str], list[str]]] = [
     (["replay", "--synthetic", "key", "--topics", "camera/rgbd"],
      ["--topics: camera/rgbd not in the synthetic key demonstration"]),
     (["frobnicate"], ["handkse: COMMAND: invalid choice: 'frobnicate'"]),
+    (["articulate", "--amount", "0"],
+     ["handkse articulate: --amount: must be a finite, non-zero number, got 0"]),
+    (["articulate", "--duration", "-2"], ["handkse articulate: --duration: must be > 0"]),
+    (["articulate", "--model-file", "{missing}"],
+     ["handkse articulate: --model-file {missing} does not exist"]),
+    (["articulate", "--model-file", "{garbage}"],
+     ["handkse articulate: --model-file {garbage} is not a KinematicModel"]),
+    (["robot-bridge", "--sim-object", "synthetic:kee"],
+     ["handkse robot-bridge: --sim-object: sim_object 'synthetic:kee': unknown object 'kee'"]),
+    (["robot-bridge", "--sim-object", "{tmp}/lab/key.toml"],
+     ["handkse robot-bridge: object calibration file {tmp}/lab/key.toml does not exist"]),
     # a service that does not answer: `stats SERVICE` fails, so scripts can rely on it
     (["stats", "tracker", "--timeout", "1", "--no-multicast-scouting"],
      ["handkse stats: get 'handkse/default/tracker/stats': nothing answers"]),
+    (["articulate", "--amount", "1", "--duration", "2", "--no-multicast-scouting"],
+     ["handkse articulate: no robot bridge answers on handkse/default/robot/articulate",
+      "is handkse robot-bridge running"]),
+    (["articulate", "--dry-run", "--no-multicast-scouting"],
+     ["handkse articulate: cannot read the model for the default amount or duration",
+      "give --amount and --duration"]),
 ]
 
 

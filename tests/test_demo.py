@@ -1,4 +1,5 @@
-"""``handkse demo`` end to end: router, tracker and kinematics as real processes on loopback."""
+"""``handkse demo`` end to end: router, tracker, kinematics and the robot bridge as real processes
+on loopback, the articulation asked for over the bus as ``handkse articulate`` asks."""
 
 from __future__ import annotations
 
@@ -23,5 +24,26 @@ def test_demo_runs_end_to_end_and_prints_the_right_model(procs: Processes) -> No
     assert match is not None, out
     assert float(match.group(1)) <= SLIDER_TANGENT_ERROR_BOUND_DEG, out
     assert re.search(r"updates\s+[1-9]\d*", out), out  # the model absorbed hand-body updates
-    # then the simulated Panda acts on the estimate (or refuses it with a reason)
-    assert re.search(r"simulated articulation: (SUCCESS|FAILED) \(\w+\)", out), out
+    # then the robot bridge process, its simulated Panda holding the demonstration's true
+    # slider, is asked to articulate along the estimate and answers (or refuses, with why)
+    assert re.search(r"^robot_bridge ready \(mujoco: slider \(prismatic\) from "
+                     r"synthetic:slider:3:0, grasped at", out, re.MULTILINE), out
+    assert re.search(r"^\$ handkse articulate --rig \w+ --amount [-+0-9.]+ --duration [0-9.]+$",
+                     out, re.MULTILINE), out
+    robot = re.search(r"^articulate: (SUCCESS|FAILED|REFUSED) \((\w+)\)\n  detail     (.+)$",
+                      out, re.MULTILINE)
+    assert robot is not None, out
+    outcome, reason, detail = robot.groups()
+    assert (outcome == "SUCCESS") == (reason == "ok"), out
+    assert len(detail) > 20, out  # a sentence saying why
+    if outcome != "REFUSED":  # it moved: how far, with which forces
+        assert re.search(r"^  reached    [-+0-9.]+ mm of [-+0-9.]+ mm$", out, re.MULTILINE), out
+        assert re.search(r"^  force      peak [0-9.]+ N, mean [0-9.]+ N$", out, re.MULTILINE), out
+
+
+def test_demo_without_robot_starts_no_bridge(procs: Processes) -> None:
+    result = procs.run("demo", "--object", "bolt", "--rate", "3", "--no-robot", timeout=240)
+    out = result.stdout + result.stderr
+    assert result.returncode == 0, out
+    assert re.search(r"tangent error [0-9.]+ deg \(frame", out), out
+    assert "robot_bridge" not in out and "articulate" not in out, out

@@ -218,13 +218,18 @@ def _decode_array_map(value: Any, path: str) -> NDArray[Any]:
 
 
 class _Fields:
-    """Typed access to one msgpack map; every error names ``path.key``."""
+    """Typed access to one msgpack map; every error names ``path.key``.
 
-    def __init__(self, obj: Any, path: str) -> None:
+    ``lists``: arrays may also be nested lists, as :meth:`Message.to_json_obj` writes them (JSON
+    documents only; the wire always carries array maps).
+    """
+
+    def __init__(self, obj: Any, path: str, lists: bool = False) -> None:
         if not isinstance(obj, dict):
             raise ProtocolError(f"{path}: expected a map, got {type(obj).__name__}")
         self.obj = obj
         self.path = path
+        self.lists = lists
 
     def _get(self, key: str, optional: bool = False) -> Any:
         if key not in self.obj or (optional and self.obj[key] is None):
@@ -279,10 +284,10 @@ class _Fields:
 
     def map(self, key: str, optional: bool = False) -> _Fields | None:
         v = self._get(key, optional)
-        return None if v is None else _Fields(v, f"{self.path}.{key}")
+        return None if v is None else _Fields(v, f"{self.path}.{key}", self.lists)
 
     def req_map(self, key: str) -> _Fields:
-        return _Fields(self._get(key), f"{self.path}.{key}")
+        return _Fields(self._get(key), f"{self.path}.{key}", self.lists)
 
     def array(self, key: str, dtype: str, shape: tuple[int, ...], *, finite: bool = True,
               optional: bool = False) -> NDArray[Any] | None:
@@ -301,7 +306,8 @@ class _Fields:
                                     f"of {dtype} needs {math.prod(shape) * dt.itemsize}")
             a = np.frombuffer(data, dt).reshape(shape)
         else:
-            a = _decode_array_map(v, path)
+            a = (_array_from_lists(v, dtype, path) if self.lists and isinstance(v, list)
+                 else _decode_array_map(v, path))
             if a.dtype.str != dtype:
                 raise ProtocolError(f"{path}: dtype must be {dtype}, got {a.dtype.str}")
             if a.shape != shape:
@@ -315,6 +321,17 @@ class _Fields:
         a = self.array(key, dtype, shape, finite=finite)
         assert a is not None
         return a
+
+
+def _array_from_lists(value: list[Any], dtype: str, path: str) -> NDArray[Any]:
+    """A JSON array (nested lists of numbers) as an array of ``dtype``; null is not a number."""
+    try:
+        a = np.asarray(value, dtype=_dtype(dtype))
+    except (TypeError, ValueError) as exc:
+        raise ProtocolError(f"{path}: expected nested lists of numbers ({exc})") from exc
+    if a.size > _MAX_ELEMENTS:
+        raise ProtocolError(f"{path}: more than {_MAX_ELEMENTS} elements")
+    return a
 
 
 def _all_finite(a: NDArray[Any]) -> bool:
@@ -393,10 +410,23 @@ class Message:
                                 f"{str(exc)[:200]})", "bad_field") from exc
 
     @classmethod
-    def from_obj(cls: type[M], obj: Any, path: str | None = None) -> M:
-        """Validate an already unpacked msgpack map (used for nested messages)."""
+    def from_json_obj(cls: type[M], obj: Any) -> M:
+        """Decode and validate the JSON form (:meth:`to_json_obj`, e.g. ``handkse get model
+        --json``): arrays as nested lists; every failure is a :class:`ProtocolError`."""
+        try:
+            return cls.from_obj(obj, cls.__name__, lists=True)
+        except ProtocolError:
+            raise
+        except Exception as exc:  # as in from_msgpack: bad input, not a crash
+            raise ProtocolError(f"{cls.__name__}: invalid message ({type(exc).__name__}: "
+                                f"{str(exc)[:200]})", "bad_field") from exc
+
+    @classmethod
+    def from_obj(cls: type[M], obj: Any, path: str | None = None, lists: bool = False) -> M:
+        """Validate an already unpacked msgpack map (used for nested messages); ``lists``:
+        arrays may be nested lists (the JSON form)."""
         path = path or cls.__name__
-        f = _Fields(obj, path)
+        f = _Fields(obj, path, lists)
         schema = f.str("schema")
         kind, _, version = schema.partition("/")
         expected_kind = cls.SCHEMA.partition("/")[0]
@@ -792,7 +822,7 @@ class ArticulateRequest(Message):
     @classmethod
     def _parse(cls, f: _Fields, envelope: dict[str, Any]) -> ArticulateRequest:
         raw = f.obj.get("model")
-        model = None if raw is None else KinematicModel.from_obj(raw, f"{f.path}.model")
+        model = None if raw is None else KinematicModel.from_obj(raw, f"{f.path}.model", f.lists)
         timeout = (None if f.obj.get("timeout_s") is None
                    else f.float("timeout_s", 1e-3, 86400.0))
         return cls(**envelope, amount=f.float("amount"),
@@ -802,8 +832,63 @@ class ArticulateRequest(Message):
 
 
 @dataclass(frozen=True, kw_only=True, eq=False)
+class ArticulatePlan:
+    """The motion a request planned and the limits it runs under (robot base frame, SI units).
+
+    ``axis`` (3,) unit joint axis and ``point`` (3,) [m] on it (revolute) or the grasp point
+    (prismatic), both in the robot base frame; ``amount`` rad or m, signed about / along
+    ``axis``; ``duration_s`` of the motion, then ``hold_s``; the plan's peak TCP speeds; the
+    force limit in effect (the request's, capped by the bridge's), the wrist torque limit and the
+    bridge's Cartesian speed limits.
+    """
+
+    joint_type: str
+    axis: NDArray[np.float64]
+    point: NDArray[np.float64]
+    amount: float
+    duration_s: float
+    hold_s: float
+    peak_linear_speed_m_per_s: float
+    peak_angular_speed_rad_per_s: float
+    force_limit_n: float
+    wrist_torque_limit_nm: float
+    max_linear_speed_m_per_s: float
+    max_angular_speed_rad_per_s: float
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"joint_type": self.joint_type, "axis": self.axis, "point": self.point,
+                "amount": float(self.amount), "duration_s": float(self.duration_s),
+                "hold_s": float(self.hold_s),
+                "peak_linear_speed_m_per_s": float(self.peak_linear_speed_m_per_s),
+                "peak_angular_speed_rad_per_s": float(self.peak_angular_speed_rad_per_s),
+                "force_limit_n": float(self.force_limit_n),
+                "wrist_torque_limit_nm": float(self.wrist_torque_limit_nm),
+                "max_linear_speed_m_per_s": float(self.max_linear_speed_m_per_s),
+                "max_angular_speed_rad_per_s": float(self.max_angular_speed_rad_per_s)}
+
+    @classmethod
+    def parse(cls, f: _Fields) -> ArticulatePlan:
+        axis = f.req_array("axis", "<f8", (3,))
+        _check_unit(axis, f"{f.path}.axis")
+        return cls(joint_type=f.str("joint_type", ("revolute", "prismatic")), axis=axis,
+                   point=f.req_array("point", "<f8", (3,)), amount=f.float("amount"),
+                   duration_s=f.float("duration_s", 0.0), hold_s=f.float("hold_s", 0.0),
+                   peak_linear_speed_m_per_s=f.float("peak_linear_speed_m_per_s", 0.0),
+                   peak_angular_speed_rad_per_s=f.float("peak_angular_speed_rad_per_s", 0.0),
+                   force_limit_n=f.float("force_limit_n", 0.0),
+                   wrist_torque_limit_nm=f.float("wrist_torque_limit_nm", 0.0),
+                   max_linear_speed_m_per_s=f.float("max_linear_speed_m_per_s", 0.0),
+                   max_angular_speed_rad_per_s=f.float("max_angular_speed_rad_per_s", 0.0))
+
+
+@dataclass(frozen=True, kw_only=True, eq=False)
 class ArticulateResult(Message):
-    """Outcome of an articulation; ``reason`` names why it stopped (``"ok"`` on success)."""
+    """Outcome of an articulation; ``reason`` names why it stopped (``"ok"`` on success).
+
+    ``detail`` (optional on the wire): one sentence for the operator, what happened or what to
+    do about a refusal; ``plan`` (optional): the plan the request got, when it got that far
+    (dry runs, executions, refusals at the start gate).
+    """
 
     SCHEMA: ClassVar[str] = "handkse.ArticulateResult/1"
     success: bool
@@ -812,18 +897,27 @@ class ArticulateResult(Message):
     peak_force_n: float
     mean_force_n: float
     duration_s: float
+    detail: str = ""
+    plan: ArticulatePlan | None = None
 
     def _fields(self) -> dict[str, Any]:
-        return {"success": self.success, "reason": self.reason, "articulated": self.articulated,
-                "peak_force_n": self.peak_force_n, "mean_force_n": self.mean_force_n,
-                "duration_s": self.duration_s}
+        d: dict[str, Any] = {"success": self.success, "reason": self.reason,
+                             "articulated": self.articulated, "peak_force_n": self.peak_force_n,
+                             "mean_force_n": self.mean_force_n, "duration_s": self.duration_s,
+                             "detail": self.detail}
+        if self.plan is not None:
+            d["plan"] = self.plan.to_dict()
+        return d
 
     @classmethod
     def _parse(cls, f: _Fields, envelope: dict[str, Any]) -> ArticulateResult:
+        detail = "" if f.obj.get("detail") is None else f.str("detail")
+        plan_map = f.map("plan", optional=True)
         return cls(**envelope, success=f.bool("success"), reason=f.str("reason"),
                    articulated=f.float("articulated"), peak_force_n=f.float("peak_force_n", 0.0),
                    mean_force_n=f.float("mean_force_n", 0.0),
-                   duration_s=f.float("duration_s", 0.0))
+                   duration_s=f.float("duration_s", 0.0), detail=detail,
+                   plan=None if plan_map is None else ArticulatePlan.parse(plan_map))
 
 
 # --- Service control ---

@@ -13,7 +13,11 @@ Modules (nothing heavy is imported here; MuJoCo and panda-python load only where
 - :mod:`~services.robot_bridge.pandapy_backend`: a real Panda through panda-python;
 - :mod:`~services.robot_bridge.executor`: ``execute`` (tick loop with aborts) and ``Bridge``;
 - :mod:`~services.robot_bridge.service`: ``handkse robot-bridge``;
-- :mod:`~services.robot_bridge.simulation`: ``articulate_in_simulation`` (used by the demo).
+- :mod:`~services.robot_bridge.client`: ``handkse articulate`` (also what ``handkse demo`` asks
+  through);
+- :mod:`~services.robot_bridge.simulation`: a synthetic demonstration's (or a calibration file's)
+  true object placed and grasped in simulation, for the service and the robot trials
+  (``articulate_in_simulation``).
 
 The simulated robot trials (``handkse robot-trials``) are evaluation: :mod:`services.evaluation.robot_trials`.
 """

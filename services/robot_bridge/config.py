@@ -84,7 +84,11 @@ class RobotBridgeConfig:
     request_timeout_s: float = 10.0
 
     # --- Simulation (backend "mujoco") ---
-    sim_object: str = "key"               # "key", "window_lock" or "bolt" at the grasp pose
+    # The simulated object (docs/robot_bridge.md#simulated-object): a preset ("key",
+    # "window_lock", "bolt") at the nominal grasp pose; "synthetic:OBJECT[:PARTICIPANT[:SEED]]",
+    # the true object of that synthetic demonstration; or an object calibration file (*.toml),
+    # the object in the camera frame. The last two are placed through T_base_camera.
+    sim_object: str = "key"
     sim_realtime_factor: float = 1.0      # service pacing: 1 = real time, 0 = as fast as possible
     grasp_stiffness_n_per_m: float = 20000.0
     grasp_stiffness_nm_per_rad: float = 30.0
@@ -100,8 +104,7 @@ class RobotBridgeConfig:
     def __post_init__(self) -> None:
         if self.backend not in BACKENDS:
             raise ValueError(f"backend must be one of {BACKENDS}, got {self.backend!r}")
-        if self.sim_object not in SIM_OBJECTS:
-            raise ValueError(f"sim_object must be one of {SIM_OBJECTS}, got {self.sim_object!r}")
+        sim_object_source(self.sim_object)  # raises ValueError naming the rule
         for f in fields(self):
             v = getattr(self, f.name)
             if isinstance(v, float) and not math.isfinite(v):
@@ -165,6 +168,68 @@ def _check_calibration(name: str, values: tuple[float, ...], required: bool) -> 
         raise ValueError(f"{name} needs 16 numbers (row-major 4x4), got {T.size}")
     if (problem := check_pose(T.reshape(4, 4))) is not None:
         raise ValueError(f"{name} is not a rigid transform: {problem}")
+
+
+SYNTHETIC_PREFIX = "synthetic:"
+
+
+@dataclass(frozen=True)
+class SimObjectSource:
+    """Where the simulated object comes from (``sim_object``): ``kind`` "preset" (``name`` one
+    of :data:`SIM_OBJECTS`), "synthetic" (the demonstration ``generate(name, participant,
+    seed)``) or "file" (an object calibration file at ``path``)."""
+
+    kind: str
+    name: str = ""
+    participant: int = 3
+    seed: int = 0
+    path: str = ""
+
+    def __str__(self) -> str:
+        if self.kind == "synthetic":
+            return f"{SYNTHETIC_PREFIX}{self.name}:{self.participant}:{self.seed}"
+        return self.path if self.kind == "file" else self.name
+
+
+def sim_object_source(text: str) -> SimObjectSource:
+    """Parse ``sim_object``: a preset name, ``synthetic:OBJECT[:PARTICIPANT[:SEED]]`` (participant
+    3 and seed 0 by default, as ``handkse replay --synthetic``) or a path ending in ``.toml``.
+
+    Raises ``ValueError`` naming what is wrong (an unknown object lists the known ones).
+    """
+    if text in SIM_OBJECTS:
+        return SimObjectSource("preset", name=text)
+    if text.startswith(SYNTHETIC_PREFIX):
+        parts = text[len(SYNTHETIC_PREFIX):].split(":")
+        if not 1 <= len(parts) <= 3 or not parts[0]:
+            raise ValueError(f"sim_object {text!r} must look like synthetic:OBJECT, "
+                             "synthetic:OBJECT:PARTICIPANT or synthetic:OBJECT:PARTICIPANT:SEED")
+        from services.synthetic.splits import FREE_OBJECT, PARTICIPANTS, preset
+
+        name = parts[0]
+        if name == FREE_OBJECT:
+            raise ValueError(f"sim_object {text!r}: the {FREE_OBJECT!r} stream has no object")
+        try:
+            preset(name)
+        except ValueError as exc:  # its message lists the known objects
+            raise ValueError(f"sim_object {text!r}: {exc}") from None
+        try:
+            numbers = [int(v) for v in parts[1:]]
+        except ValueError:
+            raise ValueError(f"sim_object {text!r}: participant and seed must be whole "
+                             "numbers") from None
+        participant, seed = (numbers + [3, 0][len(numbers):])[:2]
+        if participant not in PARTICIPANTS:
+            raise ValueError(f"sim_object {text!r}: participant must be "
+                             f"{min(PARTICIPANTS)}..{max(PARTICIPANTS)}, got {participant}")
+        if seed < 0:
+            raise ValueError(f"sim_object {text!r}: seed must be >= 0, got {seed}")
+        return SimObjectSource("synthetic", name=name, participant=participant, seed=seed)
+    if text.endswith(".toml"):
+        return SimObjectSource("file", path=text)
+    raise ValueError(f"sim_object must be a preset ({', '.join(SIM_OBJECTS)}), "
+                     f"synthetic:OBJECT[:PARTICIPANT[:SEED]] or an object calibration file "
+                     f"(*.toml), got {text!r}")
 
 
 SECTION = "robot_bridge"

@@ -19,7 +19,12 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from services.common.protocol import ArticulateRequest, ArticulateResult, KinematicModel
+from services.common.protocol import (
+    ArticulatePlan,
+    ArticulateRequest,
+    ArticulateResult,
+    KinematicModel,
+)
 from services.common.se3 import se3_inverse
 from services.robot_bridge.backend import BackendError, BackendState, RobotBackend
 from services.robot_bridge.config import RobotBridgeConfig
@@ -33,7 +38,12 @@ from services.robot_bridge.safety import (
     tracking_violation,
     wrench_violation,
 )
-from services.robot_bridge.trajectory import ArticulationPlan, joint_in_base, plan_checks
+from services.robot_bridge.trajectory import (
+    ArticulationPlan,
+    amount_text,
+    joint_in_base,
+    plan_checks,
+)
 
 log = logging.getLogger(__name__)
 
@@ -154,7 +164,7 @@ def execute(backend: RobotBackend, plan: ArticulationPlan, config: RobotBridgeCo
         except BackendError as exc:
             log.error("articulation stopped by the backend: %s", exc)
             if abort is None:
-                abort = Refusal("robot_error", str(exc))
+                abort = Refusal("robot_error", f"the robot stopped: {exc}")
                 trace.stopped_at_s = s.t_s - t0
             break
         s = backend.read()
@@ -170,7 +180,7 @@ def execute(backend: RobotBackend, plan: ArticulationPlan, config: RobotBridgeCo
                          or tracking_violation(T_d, s.T_base_ee, config.tracking_error_limit_m,
                                                config.tracking_error_limit_rad))
             if violation is None and cancel is not None and cancel.is_set():
-                violation = Refusal("cancelled", "stopped on request")
+                violation = Refusal("cancelled", "stopped on request (the bridge is stopping)")
             if violation is not None:
                 abort = violation
                 abort_tick = i
@@ -204,10 +214,33 @@ def execute(backend: RobotBackend, plan: ArticulationPlan, config: RobotBridgeCo
                          duration, trace)
     need = (1.0 - config.success_tolerance) * abs(plan.amount)
     reached = articulated * math.copysign(1.0, plan.amount)
+    kind = plan.joint.joint_type
+    done = f"{amount_text(articulated, kind)} of {amount_text(plan.amount, kind)}"
     if reached < need:
-        return Execution(False, "incomplete", f"reached {reached:.4f} of {abs(plan.amount):.4f}",
+        return Execution(False, "incomplete",
+                         f"reached {done} (success needs {1.0 - config.success_tolerance:.0%}): "
+                         "the motion fell short; check the model's axis (handkse get model) "
+                         "or whether the joint is blocked",
                          articulated, peak_f, mean_f, peak_t, duration, trace)
-    return Execution(True, "ok", "", articulated, peak_f, mean_f, peak_t, duration, trace)
+    return Execution(True, "ok", f"articulated {done} in {duration:.1f} s, peak force "
+                                 f"{peak_f:.1f} N", articulated, peak_f, mean_f, peak_t,
+                     duration, trace)
+
+
+def plan_summary(plan: ArticulationPlan, config: RobotBridgeConfig,
+                 force_limit_n: float) -> ArticulatePlan:
+    """The wire summary of ``plan`` with the limits it runs under (``force_limit_n``: the
+    request's, capped by ``config.force_limit_n``)."""
+    linear, angular = plan.peak_speeds()
+    return ArticulatePlan(
+        joint_type=plan.joint.joint_type, axis=np.asarray(plan.joint.axis, "<f8"),
+        point=np.asarray(plan.joint.point, "<f8"), amount=float(plan.amount),
+        duration_s=float(plan.duration_s), hold_s=float(plan.hold_s),
+        peak_linear_speed_m_per_s=float(linear), peak_angular_speed_rad_per_s=float(angular),
+        force_limit_n=float(min(force_limit_n, config.force_limit_n)),
+        wrist_torque_limit_nm=float(config.wrist_torque_limit_nm),
+        max_linear_speed_m_per_s=float(config.max_linear_speed_m_per_s),
+        max_angular_speed_rad_per_s=float(config.max_angular_speed_rad_per_s))
 
 
 def _joint_path_check(plan: ArticulationPlan, q: Array, margin_rad: float) -> Refusal | None:
@@ -229,6 +262,8 @@ class Bridge:
         self.config = config
         self.last_plan: ArticulationPlan | None = None      # of the last request, if checked
         self.last_execution: Execution | None = None        # of the last request, if executed
+        # The plan of the last request as built, before its plan checks (it may be refused).
+        self.proposed_plan: ArticulationPlan | None = None
 
     def plan(self, request: ArticulateRequest, model: KinematicModel | None,
              now_ns: int | None) -> ArticulationPlan | Refusal:
@@ -239,6 +274,7 @@ class Bridge:
         the current grasp, the amount, then the plan checks.
         """
         c = self.config
+        self.proposed_plan = None
         refusal = check_model(model, min_type_probability=c.min_type_probability,
                               max_age_s=c.max_model_age_s, now_ns=now_ns)
         if refusal is not None:
@@ -248,7 +284,8 @@ class Bridge:
         if T_base_frame is None:
             return Refusal("uncalibrated_frame",
                            f"the model is in the {model.frame_id!r} frame and "
-                           f"robot_bridge.T_base_{model.frame_id} is not set")
+                           f"robot_bridge.T_base_{model.frame_id} is not set: add that "
+                           "calibration to the [robot_bridge] config")
         state = self.backend.read()
         grasp = se3_inverse(T_base_frame) @ np.append(state.T_base_ee[:3, 3], 1.0)
         refusal = check_uncertainty(
@@ -263,6 +300,7 @@ class Bridge:
         plan = ArticulationPlan(joint=joint, T_base_grasp=state.T_base_ee.copy(),
                                 amount=float(request.amount), duration_s=float(request.duration_s),
                                 hold_s=c.hold_s)
+        self.proposed_plan = plan
         refusal = plan_checks(plan, float(state.q[6]),
                               max_linear_m_per_s=c.max_linear_speed_m_per_s,
                               max_angular_rad_per_s=c.max_angular_speed_rad_per_s,
@@ -288,15 +326,23 @@ class Bridge:
         self.last_plan = planned if isinstance(planned, ArticulationPlan) else None
         if not isinstance(planned, Refusal) and gate is not None:
             planned = gate(planned) or planned
+        summary = (None if self.proposed_plan is None
+                   else plan_summary(self.proposed_plan, self.config, request.force_limit_n))
         if isinstance(planned, Refusal):
             log.warning("articulation refused: %s (%s)", planned.reason, planned.detail)
             return ArticulateResult(stamp_ns=stamp, frame_id=frame, success=False,
                                     reason=planned.reason, articulated=0.0, peak_force_n=0.0,
-                                    mean_force_n=0.0, duration_s=0.0)
+                                    mean_force_n=0.0, duration_s=0.0, detail=planned.detail,
+                                    plan=summary)
         if request.dry_run:
-            return ArticulateResult(stamp_ns=stamp, frame_id=frame, success=True,
-                                    reason="dry_run", articulated=0.0, peak_force_n=0.0,
-                                    mean_force_n=0.0, duration_s=planned.total_s)
+            kind = planned.joint.joint_type
+            return ArticulateResult(
+                stamp_ns=stamp, frame_id=frame, success=True, reason="dry_run",
+                articulated=0.0, peak_force_n=0.0, mean_force_n=0.0,
+                duration_s=planned.total_s, plan=summary,
+                detail=f"would articulate {amount_text(planned.amount, kind)} in "
+                       f"{planned.duration_s:.1f} s (+{planned.hold_s:.1f} s hold); every "
+                       "check passed; nothing moved")
         ex = execute(self.backend, planned, self.config, force_limit_n=request.force_limit_n,
                      on_tick=on_tick, cancel=cancel)
         self.last_execution = ex
@@ -304,4 +350,5 @@ class Bridge:
                                 reason=ex.reason, articulated=float(ex.articulated),
                                 peak_force_n=float(ex.peak_force_n),
                                 mean_force_n=float(ex.mean_force_n),
-                                duration_s=float(max(ex.duration_s, 0.0)))
+                                duration_s=float(max(ex.duration_s, 0.0)), detail=ex.detail,
+                                plan=summary)

@@ -1,4 +1,5 @@
-"""``make_backend``: the robot backend named by the configuration.
+"""``make_backend``: the robot backend named by the configuration; ``configured_backend``: the
+one the service runs, with its simulated object placed.
 
 Kept apart from :mod:`services.robot_bridge.backend` (the protocol both implementations import),
 so that no import cycle joins the protocol and its implementations. Vendor packages (MuJoCo,
@@ -45,3 +46,26 @@ def make_backend(config: RobotBridgeConfig, obj: ObjectSpec | None = None) -> Ro
 
         return PandaPyBackend(panda_py.Panda(config.robot_host), controllers, config)
     raise ValueError(f"unknown backend {config.backend!r}")
+
+
+def configured_backend(config: RobotBridgeConfig
+                       ) -> tuple[RobotBridgeConfig, RobotBackend, str]:
+    """The service's backend, the config it runs under and a sentence saying what it drives.
+
+    In simulation, a ``synthetic:...`` or file ``sim_object`` is placed through
+    ``T_base_camera`` (:func:`services.robot_bridge.simulation.place_configured_object`; an
+    identity calibration is replaced by the one that makes the object reachable, and the returned
+    config carries it); a preset sits at the nominal grasp pose. Raises ``ValueError`` for an
+    object that cannot be read or grasped, and as :func:`make_backend`.
+    """
+    from services.robot_bridge.config import sim_object_source
+
+    if config.backend == "mujoco" and sim_object_source(config.sim_object).kind != "preset":
+        from services.robot_bridge.simulation import place_configured_object
+
+        config, scene, where = place_configured_object(config)
+        return config, scene.backend(config), where
+    backend = make_backend(config)
+    if config.backend == "mujoco":
+        return config, backend, f"{config.sim_object} at the nominal grasp pose"
+    return config, backend, f"the Panda at {config.robot_host}"

@@ -109,13 +109,15 @@ def path_joint_check(plan: ArticulationPlan, q_start: Array, margin_rad: float,
             q = solve_ik(m, d, T, q, iterations=60)
         except ValueError:
             return Refusal("joint_limits", f"the planned path leaves the arm's joint ranges at "
-                                           f"{progress:.3f} of {plan.amount:.3f}")
+                                           f"{progress:.3f} of {plan.amount:.3f}: articulate "
+                                           "less, or grasp from another side")
         margin = np.minimum(q - Q_MIN_RAD, Q_MAX_RAD - q)
         if float(margin.min()) < margin_rad:
             j = int(np.argmin(margin))
             return Refusal("joint_limits", f"joint {j + 1} comes within "
                                            f"{math.degrees(max(float(margin[j]), 0.0)):.1f} deg of "
-                                           f"its limit at {progress:.3f} of {plan.amount:.3f}")
+                                           f"its limit at {progress:.3f} of {plan.amount:.3f}"
+                                           ": articulate less, or grasp from another side")
     return None
 
 

@@ -52,7 +52,9 @@ FUTURE_TOLERANCE_S = 1.0
 
 @dataclass(frozen=True)
 class Refusal:
-    """Why a request is not executed: a stable ``reason`` label and a human-readable ``detail``."""
+    """Why a request is not executed: a stable ``reason`` label and a ``detail`` sentence that
+    names the numbers and, where the operator can do something, what to do
+    (``ArticulateResult.detail``)."""
 
     reason: str
     detail: str
@@ -103,25 +105,34 @@ def check_model(model: KinematicModel | None, *, min_type_probability: float,
     live pipeline); ``None`` skips the age check (offline evaluation of recorded estimates).
     """
     if model is None:
-        return Refusal("no_model", "no kinematic model was given or available")
+        return Refusal("no_model", "no kinematic model was given or available: run the "
+                                   "kinematics service and demonstrate, or send a model")
     if model.type not in ARTICULABLE_TYPES:
         return Refusal("unsupported_type",
                        f"model type {model.type!r} cannot be articulated (need revolute or "
-                       "prismatic)")
+                       "prismatic): demonstrate the motion (again) until the model is one")
     params = model.revolute if model.type == "revolute" else model.prismatic
     if params is None:
-        return Refusal("unsupported_type", f"model type {model.type} has no parameters")
+        return Refusal("unsupported_type", f"model type {model.type} has no parameters: send "
+                                           "a model with its joint parameters")
     p = float(model.probabilities.get(model.type, 0.0))
     if p < min_type_probability:
         return Refusal("low_confidence",
-                       f"P({model.type}) = {p:.3f} is below the threshold {min_type_probability}")
+                       f"P({model.type}) = {p:.3f} is below the threshold {min_type_probability} "
+                       "(robot_bridge.min_type_probability): demonstrate the motion longer or "
+                       "again")
     if now_ns is not None:
         age_s = (now_ns - model.stamp_ns) * 1e-9
         if age_s > max_age_s:
-            return Refusal("stale_model", f"model is {age_s:.1f} s old (limit {max_age_s} s)")
+            return Refusal("stale_model",
+                           f"model is {age_s:.0f} s old (limit {max_age_s:g} s, "
+                           "robot_bridge.max_model_age_s): replay with wall-clock stamps "
+                           "(handkse replay without --keep-stamps) or record a new "
+                           "demonstration")
         if age_s < -FUTURE_TOLERANCE_S:
             return Refusal("stale_model",
-                           f"model is stamped {-age_s:.1f} s in the future (clock mismatch?)")
+                           f"model is stamped {-age_s:.1f} s in the future: synchronise the "
+                           "clocks of the camera and robot computers (e.g. chrony)")
     return None
 
 
@@ -154,13 +165,16 @@ def check_uncertainty(model: KinematicModel, grasp: Array, *, max_direction_std_
     if not np.isfinite(eig).all() or eig[0] < -1e-9 * max(float(np.abs(eig).max()), 1e-12):
         names = "(b1, b2, px, py, pz)" if n == 5 else "(b1, b2)"
         return Refusal("uncertain_model", f"the {model.type} covariance of {names} is not "
-                                          f"positive semi-definite (eigenvalue {eig[0]:.3g})")
+                                          f"positive semi-definite (eigenvalue {eig[0]:.3g}): "
+                                          "the model is broken; reset the kinematics service "
+                                          "and demonstrate again")
     direction = math.sqrt(max(float(np.linalg.eigvalsh(C[:2, :2]).max()), 0.0))
     if direction > max_direction_std_rad:
         return Refusal("uncertain_model",
                        f"axis direction 1-sigma {math.degrees(direction):.2f} deg exceeds "
                        f"{math.degrees(max_direction_std_rad):.2f} deg "
-                       "(robot_bridge.max_axis_direction_std_deg)")
+                       "(robot_bridge.max_axis_direction_std_deg): demonstrate a longer, "
+                       "clearer stroke")
     rev = model.revolute
     if model.type != "revolute" or rev is None:
         return None
@@ -172,7 +186,8 @@ def check_uncertainty(model: KinematicModel, grasp: Array, *, max_direction_std_
     if position > max_position_std_m:
         return Refusal("uncertain_model",
                        f"axis position 1-sigma at the grasp {position * 1e3:.1f} mm exceeds "
-                       f"{max_position_std_m * 1e3:.1f} mm (robot_bridge.max_axis_position_std_m)")
+                       f"{max_position_std_m * 1e3:.1f} mm (robot_bridge.max_axis_position_std_m)"
+                       ": demonstrate a longer, clearer stroke")
     return None
 
 
@@ -187,10 +202,12 @@ def check_cached_model(received_age_s: float | None, max_cached_age_s: float, wh
     while its source was cut off. The model itself still goes through :func:`check_model`.
     """
     if received_age_s is None:
-        return Refusal("no_model", f"{why}; no model was received from it either")
+        return Refusal("no_model", f"{why}; no model was received from it either: is handkse "
+                                   "kinematics running on this rig and connected?")
     if received_age_s > max_cached_age_s:
         return Refusal("stale_model", f"{why}; the last model was received {received_age_s:.1f} s "
-                                      f"ago (limit {max_cached_age_s:g} s)")
+                                      f"ago (limit {max_cached_age_s:g} s): check that the "
+                                      "kinematics service is running and reachable")
     return None
 
 
@@ -201,7 +218,8 @@ def check_amount(amount: float, duration_s: float, joint_type: str) -> Refusal |
     limit = 2.0 * math.pi if joint_type == "revolute" else 1.0
     if abs(amount) > limit:
         unit = "rad" if joint_type == "revolute" else "m"
-        return Refusal("invalid_request", f"|amount| {abs(amount):.3f} {unit} exceeds {limit:.3f}")
+        return Refusal("invalid_request", f"|amount| {abs(amount):.3f} {unit} exceeds "
+                                          f"{limit:.3f} {unit} for a {joint_type} joint")
     if not duration_s > 0.0:
         return Refusal("invalid_request", f"duration_s must be > 0, got {duration_s}")
     return None
@@ -212,10 +230,14 @@ def wrench_violation(wrench: Array, force_limit_n: float, torque_limit_nm: float
     """``force_limit`` / ``torque_limit`` when the wrist wrench (6,) exceeds a limit."""
     f = math.sqrt(float(wrench[0] ** 2 + wrench[1] ** 2 + wrench[2] ** 2))
     if f > force_limit_n:
-        return Refusal("force_limit", f"|F| = {f:.1f} N exceeded {force_limit_n:.1f} N")
+        return Refusal("force_limit", f"|F| = {f:.1f} N exceeded {force_limit_n:.1f} N: the "
+                                      "object resists the planned path (a wrong axis, or the "
+                                      "joint is blocked)")
     t = math.sqrt(float(wrench[3] ** 2 + wrench[4] ** 2 + wrench[5] ** 2))
     if t > torque_limit_nm:
-        return Refusal("torque_limit", f"|T| = {t:.2f} N m exceeded {torque_limit_nm:.2f} N m")
+        return Refusal("torque_limit", f"|T| = {t:.2f} N m exceeded {torque_limit_nm:.2f} N m: "
+                                       "the planned rotation fights the object's (a tilted "
+                                       "axis?)")
     return None
 
 
@@ -226,13 +248,14 @@ def tracking_violation(T_target: Array, T_actual: Array, max_position_m: float,
     d = math.sqrt(float(dp @ dp))
     if d > max_position_m:
         return Refusal("tracking_error", f"position error {d * 100:.1f} cm exceeded "
-                                         f"{max_position_m * 100:.1f} cm")
+                                         f"{max_position_m * 100:.1f} cm: the hand is held back")
     # trace(R_d R^T) = sum of the element-wise product; angle = acos((trace - 1) / 2)
     c = (float((T_target[:3, :3] * T_actual[:3, :3]).sum()) - 1.0) / 2.0
     a = math.acos(max(-1.0, min(1.0, c)))
     if a > max_rotation_rad:
         return Refusal("tracking_error", f"orientation error {math.degrees(a):.1f} deg exceeded "
-                                         f"{math.degrees(max_rotation_rad):.1f} deg")
+                                         f"{math.degrees(max_rotation_rad):.1f} deg: the hand is "
+                                         "held back")
     return None
 
 
@@ -247,5 +270,6 @@ class SaturationWatch:
         self.ticks = self.ticks + 1 if saturated else 0
         if self.ticks >= self.max_ticks:
             return Refusal("torque_saturation",
-                           f"joint torque demand above Franka's limits for {self.ticks} ticks")
+                           f"joint torque demand above Franka's limits for {self.ticks} ticks: "
+                           "the arm cannot follow the model (check its axis)")
         return None

@@ -55,6 +55,7 @@ from services.common.bus import (
 )
 from services.common.bus import options_from_args as zenoh_options_from_args
 from services.common.config import section_from_args
+from services.common.errors import UserError
 from services.common.keys import Keys
 from services.common.protocol import (
     ArticulateRequest,
@@ -68,7 +69,7 @@ from services.common.service import BusLike, Service, stop_on_signals
 from services.robot_bridge.backend import BackendState, RobotBackend
 from services.robot_bridge.config import RobotBridgeConfig, config_from_args
 from services.robot_bridge.executor import Bridge
-from services.robot_bridge.factory import make_backend
+from services.robot_bridge.factory import configured_backend
 from services.robot_bridge.safety import Refusal, check_cached_model
 from services.robot_bridge.trajectory import ArticulationPlan
 
@@ -169,8 +170,9 @@ class RobotBridgeNode:
                 self._job = job
         if running is not None:
             return QueryAnswer(self._refused(Refusal(
-                "busy", f"serving a request received {now - running.received_at:.1f} s ago; "
-                        "one articulation at a time")).to_msgpack())
+                "busy", f"serving a request received {now - running.received_at:.1f} s ago "
+                        "(one articulation at a time): send it again once that one is "
+                        "answered")).to_msgpack())
         self._jobs.put(job)
         return job.answer
 
@@ -182,7 +184,7 @@ class RobotBridgeNode:
         if due:
             log.warning("articulate refused: %s (%s; %d so far)", refusal.reason,
                         refusal.detail, count)
-        return _refusal(refusal.reason)
+        return _refusal(refusal)
 
     def _count(self, reason: str) -> tuple[int, bool]:
         """Count a refusal; (the count so far, whether a log line is due)."""
@@ -213,15 +215,18 @@ class RobotBridgeNode:
                 job = self._jobs.get_nowait()
             except queue.Empty:
                 break
-            self._finish(job, self._refused(Refusal("cancelled", "the bridge is stopping")))
+            self._finish(job, self._refused(Refusal("cancelled", "the bridge is stopping; "
+                                                                 "nothing was started")))
 
     def _serve(self, job: _Job, stop: threading.Event) -> None:
         try:
             result = self._execute(job, stop)
-        except Exception:  # reported to the caller; the service keeps running
+        except Exception as exc:  # reported to the caller; the service keeps running
             log.exception("articulation failed")
             self.mode = "fault"
-            result = _refusal("robot_error")
+            result = _refusal(Refusal("robot_error", f"the articulation failed "
+                                                     f"({type(exc).__name__}: {exc}); see the "
+                                                     "robot bridge's log"))
         self._finish(job, result)
 
     def _finish(self, job: _Job, result: ArticulateResult) -> None:
@@ -259,7 +264,8 @@ class RobotBridgeNode:
             return Refusal("caller_gone",
                            f"the caller stopped waiting {now - job.deadline:.1f} s ago (timeout "
                            f"{job.timeout_s:.1f} s; the request arrived "
-                           f"{now - job.received_at:.1f} s ago); not started")
+                           f"{now - job.received_at:.1f} s ago); not started: send a longer "
+                           "ArticulateRequest.timeout_s")
         factor = self.config.sim_realtime_factor if self.backend.name == "mujoco" else 1.0
         motion_s = plan.total_s / factor if factor > 0.0 else plan.total_s
         left_s = job.deadline - now
@@ -353,9 +359,10 @@ def _rigid(T: np.ndarray) -> np.ndarray:
     return out
 
 
-def _refusal(reason: str) -> ArticulateResult:
-    return ArticulateResult(success=False, reason=reason, articulated=0.0, peak_force_n=0.0,
-                            mean_force_n=0.0, duration_s=0.0)
+def _refusal(refusal: Refusal) -> ArticulateResult:
+    return ArticulateResult(success=False, reason=refusal.reason, articulated=0.0,
+                            peak_force_n=0.0, mean_force_n=0.0, duration_s=0.0,
+                            detail=refusal.detail)
 
 
 def kinematics_model_fetcher(bus: QueryBus, keys: Keys, timeout_s: float,
@@ -407,21 +414,40 @@ def run(bus: BusLike, keys: Keys, config: RobotBridgeConfig, backend: RobotBacke
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """``--backend`` (overrides ``robot_bridge.backend``); the CLI adds rig/config/zenoh itself."""
+    """``--backend`` and ``--sim-object`` (override ``robot_bridge.backend`` and
+    ``robot_bridge.sim_object``); the CLI adds rig/config/zenoh itself."""
     parser.add_argument("--backend", choices=("mujoco", "panda"),
                         help="robot backend (default: robot_bridge.backend, mujoco)")
+    parser.add_argument("--sim-object", metavar="SOURCE",
+                        help="simulated object: key, window_lock or bolt at the nominal grasp; "
+                             "synthetic:OBJECT[:PARTICIPANT[:SEED]], the true object of that "
+                             "synthetic demonstration; or an object calibration FILE.toml "
+                             "(docs/robot_bridge.md#simulated-object); default "
+                             "robot_bridge.sim_object")
 
 
 def main(args: argparse.Namespace) -> int:
     """``handkse robot-bridge``: config from ``--config``/``--set``, backend from the config."""
     config = config_from_args(args)
-    if getattr(args, "backend", None):
-        config = replace(config, backend=args.backend)
+    try:
+        if getattr(args, "backend", None):
+            config = replace(config, backend=args.backend)
+        if getattr(args, "sim_object", None):
+            config = replace(config, sim_object=args.sim_object)
+    except ValueError as exc:
+        raise UserError(f"--sim-object: {exc}") from None
+    if getattr(args, "sim_object", None) and config.backend != "mujoco":
+        log.warning("--sim-object %s is ignored: the %s backend drives a real robot",
+                    args.sim_object, config.backend)
+    try:
+        config, backend, what = configured_backend(config)
+    except ValueError as exc:  # an object that cannot be read or grasped, a robot not set up
+        raise UserError(str(exc)) from None
     stop = threading.Event()
     stop_on_signals(stop)
     keys = Keys(args.rig)
-    backend = make_backend(config)
+    log.info("driving %s", what)
     with Bus(zenoh_options_from_args(args, section_from_args(args, "zenoh"))) as bus:
-        print(f"robot_bridge ready ({backend.name})", flush=True)
+        print(f"robot_bridge ready ({backend.name}: {what})", flush=True)
         run(bus, keys, config, backend, stop)
     return 0

@@ -208,7 +208,7 @@ def plan_checks(plan: ArticulationPlan, q7_rad: float, *, max_linear_m_per_s: fl
     if reach.max() > MAX_REACH_M or pts[:, 2].min() < MIN_TCP_HEIGHT_M:
         return Refusal("workspace", f"planned path reaches {reach.max():.2f} m from the shoulder "
                                     f"(limit {MAX_REACH_M} m), lowest point "
-                                    f"{pts[:, 2].min():.3f} m")
+                                    f"{pts[:, 2].min():.3f} m: place the object within reach")
     q7_end = q7_rad + plan.joint7_change()
     lo, hi = joint7_limits_rad[0] + joint7_margin_rad, joint7_limits_rad[1] - joint7_margin_rad
     if not lo <= q7_end <= hi:
@@ -217,6 +217,27 @@ def plan_checks(plan: ArticulationPlan, q7_rad: float, *, max_linear_m_per_s: fl
                        f"[{lo:.2f}, {hi:.2f}]; regrasp with the hand turned by 180 deg about the "
                        "approach axis")
     return None
+
+
+# The paper's pace (sec. IV.C): 180 deg in 6 s; prismatic articulations at 2 cm/s.
+SECONDS_PER_HALF_TURN = 6.0
+PRISMATIC_SPEED_M_PER_S = 0.02
+MIN_DURATION_S = 2.0
+
+
+def default_duration(amount: float, joint_type: str) -> float:
+    """Duration [s] of an articulation of ``amount`` (rad or m) at the paper's pace: 6 s per
+    180 deg, 2 cm/s for a prismatic joint, at least 2 s."""
+    if joint_type == "revolute":
+        return max(MIN_DURATION_S, SECONDS_PER_HALF_TURN * abs(amount) / math.pi)
+    return max(MIN_DURATION_S, abs(amount) / PRISMATIC_SPEED_M_PER_S)
+
+
+def amount_text(amount: float, joint_type: str) -> str:
+    """A joint amount for people: degrees for a revolute joint, millimetres for a prismatic one."""
+    if joint_type == "revolute":
+        return f"{math.degrees(amount):+.1f} deg"
+    return f"{amount * 1e3:+.1f} mm"
 
 
 def flipped_grasp_q7(q7_rad: float, joint7_change_rad: float,

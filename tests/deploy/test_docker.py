@@ -17,6 +17,7 @@ import zenoh
 from ruamel.yaml import YAML
 
 from services.cli import build_parser
+from services.robot_bridge.config import sim_object_source
 
 REPO = Path(__file__).resolve().parents[2]
 DOCKER = REPO / "docker"
@@ -136,6 +137,10 @@ def test_without_a_profile_the_pipeline_needs_no_hardware() -> None:
     assert set(replay.reset) == {"tracker", "kinematics"}
     bridge = _parse(services["robot-bridge"]["command"])
     assert bridge.backend == "mujoco"
+    # the simulated Panda holds the very object the replay demonstrates
+    held = sim_object_source(bridge.sim_object)
+    assert (held.kind, held.name, held.participant, held.seed) == (
+        "synthetic", replay.synthetic, replay.participant, replay.seed)
 
 
 def test_each_hardware_profile_has_one_camera_and_one_detector() -> None:
