@@ -180,9 +180,9 @@ class Service:
         """Decode every sample on ``key`` as ``message_type`` and hand it to ``handler`` in the loop.
 
         ``latest``: only the newest unread sample matters (a prior), so a newer valid one replaces
-        it. ``frame``: camera frames, with the frame payload limit. ``received`` counts every
-        sample on arrival; one dropped unhandled is counted in ``dropped``, an invalid one in
-        ``rejected``.
+        it. ``frame``: camera frames, with the frame payload limit. ``received`` counts a sample
+        when it is decoded (or refused), so once ``received`` reaches N the first N samples'
+        rejections are counted too; a sample dropped unhandled is counted in ``dropped`` instead.
         """
         limit = self.limits.max_frame_payload_bytes if frame else self.limits.max_payload_bytes
 
@@ -193,20 +193,25 @@ class Service:
                 self.reject(exc.reason, str(exc))
                 return None
 
+        def count() -> None:
+            with self._reject_lock:
+                self.received += 1
+
         def handle(payload: bytes) -> None:
+            count()
             message = decode(payload)
             if message is not None:
                 handler(message)
 
         def on_sample(k: str, payload: bytes) -> None:  # on a bus thread: never blocks
-            with self._reject_lock:
-                self.received += 1
             if len(payload) > limit:
+                count()
                 self.reject("too_large", f"{len(payload)} bytes on {k} (limit {limit}, "
                                          f"limits.max_{'frame_' if frame else ''}payload_bytes)")
                 return
             if latest:
                 # Decoded here, so that garbage cannot evict a valid sample from the slot.
+                count()
                 message = decode(payload)
                 if message is not None:
                     self._inbox.put_latest(k, (handler, (message,)))

