@@ -52,6 +52,11 @@ class Keys:
         return f"{self.root}/robot/state"
 
     @property
+    def robot_body(self) -> str:
+        """The robot's grasp pose as a HandBody (docs/protocol.md#robotbody)."""
+        return f"{self.root}/robot/body"
+
+    @property
     def robot_articulate(self) -> str:
         return f"{self.root}/robot/articulate"
 

@@ -97,12 +97,19 @@ def orientation_error(R_target: Array, R: Array) -> Array:
 
 def impedance_wrench(p_target: Array, R_target: Array, twist_target: Array | None,
                      p: Array, R: Array, twist: Array, gains: ImpedanceGains) -> Array:
-    """Task wrench ``K e + D (v_d - v)`` (6,) [N, N m] in the base frame."""
+    """Task wrench ``K e + D (v_d - v)`` (6,) [N, N m] in the base frame.
+
+    ``gains`` has diagonal (6,) ``stiffness``/``damping`` (:class:`ImpedanceGains`) or full 6x6
+    ones (:class:`~services.robot_bridge.compliance.MatrixGains`).
+    """
     e = np.empty(6)
     e[:3] = p_target - p
     e[3:] = orientation_error(R_target, R)
     de = -twist if twist_target is None else twist_target - twist
-    return gains.stiffness * e + gains.damping * de
+    K, D = gains.stiffness, gains.damping
+    if K.ndim == 2:  # full 6x6 gains of the compliance law (services.robot_bridge.compliance)
+        return K @ e + D @ de
+    return K * e + D * de
 
 
 def nullspace_torque(J: Array, q: Array, dq: Array, q_nullspace: Array,

@@ -14,7 +14,7 @@ import logging
 import math
 import threading
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -29,6 +29,7 @@ from services.common.se3 import se3_inverse
 from services.robot_bridge.backend import BackendError, BackendState, RobotBackend
 from services.robot_bridge.config import RobotBridgeConfig
 from services.robot_bridge.panda_scene import Q_MAX_RAD, Q_MIN_RAD, TAU_MAX_NM
+from services.robot_bridge.refinement import RefinementConfig, RefinementRecord, Refiner
 from services.robot_bridge.safety import (
     Refusal,
     SaturationWatch,
@@ -68,6 +69,7 @@ class Trace:
     tau_rate_nm_per_s: list[float] = field(default_factory=list)  # max |dtau_i/dt| sent
     joint_speed_rad_per_s: list[float] = field(default_factory=list)  # max |dq_i|
     tcp_speed_m_per_s: list[float] = field(default_factory=list)     # |dp/dt| of the TCP
+    command_position: list[Array] = field(default_factory=list)     # commanded TCP position (3,)
     stopped_at_s: float | None = None                          # time of the abort, if any
 
     def arrays(self) -> dict[str, Array]:
@@ -87,6 +89,7 @@ class Execution:
     peak_torque_nm: float
     duration_s: float
     trace: Trace
+    refinement: RefinementRecord | None = None   # closed loop only
 
 
 class _Progress:
@@ -124,12 +127,17 @@ _NO_DISPLACEMENT = np.zeros(3)
 
 def execute(backend: RobotBackend, plan: ArticulationPlan, config: RobotBridgeConfig, *,
             force_limit_n: float | None = None, on_tick: Tick | None = None,
-            cancel: threading.Event | None = None, record: bool = True) -> Execution:
+            cancel: threading.Event | None = None, record: bool = True,
+            refiner: Refiner | None = None) -> Execution:
     """Follow ``plan`` on ``backend`` (already holding the grasp pose) under the safety limits.
 
     ``on_tick(state, articulating)`` runs after every control tick (publishing, pacing).
     Success: no abort and at least ``(1 - success_tolerance) |amount|`` reached by this
     request, in the direction of ``amount`` (:class:`_Progress`).
+
+    With a ``refiner`` (closed loop, docs/robot_bridge.md#closed-loop) the command comes from its
+    re-planned, blended path and stiffness, progress is measured about its latest axis, and its
+    refusals (``model_jump``, ``model_diverged``, a failed re-plan check) abort like any limit.
     """
     force_limit = config.force_limit_n if force_limit_n is None else min(force_limit_n,
                                                                           config.force_limit_n)
@@ -156,7 +164,22 @@ def execute(backend: RobotBackend, plan: ArticulationPlan, config: RobotBridgeCo
     i = 0
     while (i < n_motion and abort is None) or (abort is not None and i < abort_tick + n_settle):
         moving = abort is None
-        if moving:
+        if moving and refiner is not None:  # --- closed loop (services.robot_bridge.refinement)
+            refused = refiner.tick(i * dt, round((s.t_s - t0) * 1e9) + _STAMP0_NS, s.T_base_ee,
+                                   s.wrench)
+            if refused is not None:
+                abort, abort_tick, trace.stopped_at_s = refused, i, s.t_s - t0
+                log.warning("articulation aborted: %s (%s)", refused.reason, refused.detail)
+                backend.hold()
+                moving = False
+            else:
+                T_d, twist_d, progress = refiner.sample(i * dt)
+                progress_made.plan = refiner.plan
+                gains = refiner.gains_at(i * dt)
+                if gains is not None and backend.name == "mujoco":
+                    backend.gains = gains  # type: ignore[attr-defined]
+                backend.command(T_d, twist_d)
+        elif moving:  # --- open loop
             T_d, twist_d, progress = plan.sample(i * dt)
             backend.command(T_d, twist_d)
         try:
@@ -192,6 +215,8 @@ def execute(backend: RobotBackend, plan: ArticulationPlan, config: RobotBridgeCo
             trace.force_n.append(f)
             trace.torque_nm.append(tq)
             trace.progress.append(progress)
+            if moving:
+                trace.command_position.append(T_d[:3, 3].copy())
             trace.articulated.append(articulated)
             taus.append(s.tau)
             dqs.append(s.dq)
@@ -209,9 +234,10 @@ def execute(backend: RobotBackend, plan: ArticulationPlan, config: RobotBridgeCo
         trace.tcp_speed_m_per_s = list(np.linalg.norm(np.diff(np.asarray(tcp), axis=0),
                                                       axis=1) / dt)
     mean_f = sum_f / n_f if n_f else 0.0
+    refined = refiner.record() if refiner is not None else None
     if abort is not None:
         return Execution(False, abort.reason, abort.detail, articulated, peak_f, mean_f, peak_t,
-                         duration, trace)
+                         duration, trace, refined)
     need = (1.0 - config.success_tolerance) * abs(plan.amount)
     reached = articulated * math.copysign(1.0, plan.amount)
     kind = plan.joint.joint_type
@@ -221,10 +247,10 @@ def execute(backend: RobotBackend, plan: ArticulationPlan, config: RobotBridgeCo
                          f"reached {done} (success needs {1.0 - config.success_tolerance:.0%}): "
                          "the motion fell short; check the model's axis (handkse get model) "
                          "or whether the joint is blocked",
-                         articulated, peak_f, mean_f, peak_t, duration, trace)
+                         articulated, peak_f, mean_f, peak_t, duration, trace, refined)
     return Execution(True, "ok", f"articulated {done} in {duration:.1f} s, peak force "
                                  f"{peak_f:.1f} N", articulated, peak_f, mean_f, peak_t,
-                     duration, trace)
+                     duration, trace, refined)
 
 
 def plan_summary(plan: ArticulationPlan, config: RobotBridgeConfig,
@@ -243,6 +269,10 @@ def plan_summary(plan: ArticulationPlan, config: RobotBridgeConfig,
         max_angular_speed_rad_per_s=float(config.max_angular_speed_rad_per_s))
 
 
+# Robot stamps fed to the estimator start here (it refuses non-positive stamps) [ns].
+_STAMP0_NS = 1_000_000_000
+
+
 def _joint_path_check(plan: ArticulationPlan, q: Array, margin_rad: float) -> Refusal | None:
     """IK along the plan on the generated Panda model; skipped (logged) without MuJoCo."""
     try:
@@ -257,9 +287,11 @@ def _joint_path_check(plan: ArticulationPlan, q: Array, margin_rad: float) -> Re
 class Bridge:
     """Request-level articulation on one backend: checks, plan, dry run, execution."""
 
-    def __init__(self, backend: RobotBackend, config: RobotBridgeConfig) -> None:
+    def __init__(self, backend: RobotBackend, config: RobotBridgeConfig,
+                 refinement: RefinementConfig | None = None) -> None:
         self.backend = backend
         self.config = config
+        self.refinement = refinement   # closed loop when set (revolute models)
         self.last_plan: ArticulationPlan | None = None      # of the last request, if checked
         self.last_execution: Execution | None = None        # of the last request, if executed
         # The plan of the last request as built, before its plan checks (it may be refused).
@@ -310,6 +342,25 @@ class Bridge:
             refusal = _joint_path_check(plan, state.q, c.joint_limit_margin_rad)
         return refusal if refusal is not None else plan
 
+    def _refiner(self, plan: ArticulationPlan, model: KinematicModel) -> Refiner | None:
+        """The closed-loop refiner of ``plan`` (revolute, with ``refinement`` set), or None."""
+        c = self.config
+        T_base_frame = c.base_T_frame(model.frame_id)
+        if self.refinement is None or model.type != "revolute" or T_base_frame is None:
+            return None
+        checks = {"q7_rad": float(self.backend.read().q[6]),
+                  "max_linear_m_per_s": c.max_linear_speed_m_per_s,
+                  "max_angular_rad_per_s": c.max_angular_speed_rad_per_s,
+                  "joint7_limits_rad": (float(Q_MIN_RAD[6]), float(Q_MAX_RAD[6])),
+                  "joint7_margin_rad": c.joint7_margin_rad}
+        refinement = self.refinement
+        if self.backend.name == "mujoco" and refinement.grasp_stiffness_n_per_m is None:
+            # The simulated grasp spring is known exactly (docs/robot_bridge.md#closed-loop).
+            refinement = replace(refinement, grasp_stiffness_n_per_m=c.grasp_stiffness_n_per_m,
+                                 grasp_stiffness_nm_per_rad=c.grasp_stiffness_nm_per_rad)
+        return Refiner(model, T_base_frame, plan, c.gains(), checks,
+                       self.backend.control_period_s, refinement)
+
     def articulate(self, request: ArticulateRequest, model: KinematicModel | None, *,
                    now_ns: int | None, on_tick: Tick | None = None,
                    cancel: threading.Event | None = None,
@@ -343,8 +394,9 @@ class Bridge:
                 detail=f"would articulate {amount_text(planned.amount, kind)} in "
                        f"{planned.duration_s:.1f} s (+{planned.hold_s:.1f} s hold); every "
                        "check passed; nothing moved")
+        refiner = self._refiner(planned, model) if model is not None else None
         ex = execute(self.backend, planned, self.config, force_limit_n=request.force_limit_n,
-                     on_tick=on_tick, cancel=cancel)
+                     on_tick=on_tick, cancel=cancel, refiner=refiner)
         self.last_execution = ex
         return ArticulateResult(stamp_ns=stamp, frame_id=frame, success=ex.success,
                                 reason=ex.reason, articulated=float(ex.articulated),

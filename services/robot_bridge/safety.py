@@ -28,6 +28,8 @@ Reasons are short stable labels (they end up in ``ArticulateResult.reason``):
 ``tracking_error``     the end-effector lagged the target by more than the bound
 ``robot_error``        the backend reported an error (reflex, communication, simulation)
 ``cancelled``          stopped on request (service shutdown)
+``model_jump``         closed loop: the robot's refined axis moved faster than the bound per second
+``model_diverged``     closed loop: the refined axis' 1-sigma grew above a factor of its minimum
 ``incomplete``         the trajectory ended without reaching the commanded amount
 =====================  =========================================================================
 """

@@ -65,11 +65,13 @@ from services.common.protocol import (
     RobotState,
 )
 from services.common.provenance import AmbiguousReply, QueryBus, UntrustedReply, ask_service
+from services.common.se3 import se3_inverse
 from services.common.service import BusLike, Service, stop_on_signals
 from services.robot_bridge.backend import BackendState, RobotBackend
 from services.robot_bridge.config import RobotBridgeConfig, config_from_args
 from services.robot_bridge.executor import Bridge
 from services.robot_bridge.factory import configured_backend
+from services.robot_bridge.refinement import robot_body
 from services.robot_bridge.safety import Refusal, check_cached_model
 from services.robot_bridge.trajectory import ArticulationPlan
 
@@ -337,6 +339,14 @@ class RobotBridgeNode:
                          wrench=np.asarray(state.wrench, "<f8"), mode=self.mode,
                          backend=self.backend.name)
         self.service.publish(keys.robot_state, msg)
+        # --- robot/body: the grasp pose as a HandBody in the camera frame, while articulating
+        # (docs/protocol.md#robotbody); services.robot_bridge.refinement.robot_body.
+        if self.mode == "articulating":
+            T_frame_base = se3_inverse(self.config.base_T_camera())
+            body = robot_body(time.time_ns(), "camera", T_frame_base, _rigid(state.T_base_ee),
+                              np.zeros(6))
+            self.service.publish(keys.robot_body, replace(
+                body, seq=self.service.next_seq(keys.robot_body)))  # type: ignore[type-var]
 
 
 def _reply_window_s(request: ArticulateRequest, timeout_s: float) -> float:

@@ -49,6 +49,7 @@ from services.robot_bridge.mujoco_backend import (
     nominal_grasp_pose,
 )
 from services.robot_bridge.panda_scene import Q_GRASP_RAD, Q_MAX_RAD, Q_MIN_RAD, ObjectSpec
+from services.robot_bridge.refinement import RefinementConfig
 from services.robot_bridge.trajectory import (
     ArticulationPlan,
     default_duration,
@@ -358,15 +359,17 @@ def articulate_in_simulation(model: KinematicModel, obj: ObjectInCamera, *,
                              T_base_camera: Array | None = None, amount: float | None = None,
                              duration_s: float | None = None,
                              config: RobotBridgeConfig | None = None,
-                             check_age: bool = False) -> SimArticulation:
+                             check_age: bool = False,
+                             refinement: RefinementConfig | None = None) -> SimArticulation:
     """Grasp the true ``obj`` in simulation and articulate it along the estimated ``model``.
 
     ``model`` and ``obj`` are in the camera frame; ``T_base_camera`` defaults to
     :func:`default_hand_eye`. ``amount`` defaults to :func:`task_amount` (180 deg for the key
     and the window lock, else the demonstrated range, in the demonstrated direction);
     ``duration_s`` to 6 s per 180 deg (prismatic: 2 cm/s; at least 2 s). The model's age is
-    checked only with ``check_age`` (synthetic stamps are arbitrary). Never raises for a bad
-    model or an unreachable object: the result says why (``reason``).
+    checked only with ``check_age`` (synthetic stamps are arbitrary); ``refinement`` runs it
+    closed loop (docs/robot_bridge.md#closed-loop). Never raises for a bad model or an
+    unreachable object: the result says why (``reason``).
     """
     cfg = config or RobotBridgeConfig()
     T_bc = default_hand_eye(obj) if T_base_camera is None else np.asarray(T_base_camera, float)
@@ -391,7 +394,7 @@ def articulate_in_simulation(model: KinematicModel, obj: ObjectInCamera, *,
                                   peak_force_n=0.0, mean_force_n=0.0, duration_s=0.0,
                                   detail=f"the arm cannot grasp the {obj.name}: {exc}")
         return SimArticulation(result, None, T_bc, None, amt, None)
-    bridge = Bridge(backend, cfg)
+    bridge = Bridge(backend, cfg, refinement)  # refinement: closed loop when set
     now = time.time_ns() if check_age else None
     result = bridge.articulate(request, model, now_ns=now)
     return SimArticulation(result, bridge.last_execution, T_bc, scene.obj, amt,
