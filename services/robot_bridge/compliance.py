@@ -26,17 +26,29 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
 
 from services.robot_bridge.controller import ImpedanceGains
 
-if TYPE_CHECKING:
-    from services.robot_bridge.refinement import AxisBelief
-
 Array = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class AxisBelief:
+    """A revolute axis in the base frame at the grasp: unit ``axis``, ``foot`` the axis point
+    nearest the grasp (m), ``cov`` 5x5 of ``(b1, b2, foot)`` with ``b`` in ``tangent_basis(axis)``."""
+
+    axis: Array
+    foot: Array
+    cov: Array
+
+    def direction_std(self) -> float:
+        return math.sqrt(max(float(np.linalg.eigvalsh(self.cov[:2, :2]).max()), 0.0))
+
+    def position_std(self) -> float:
+        return math.sqrt(max(float(np.linalg.eigvalsh(self.cov[2:, 2:]).max()), 0.0))
 
 SIGMA_REF_M = 0.003                  # grasp-position 1-sigma that halves the stiffness
 SIGMA_REF_RAD = math.radians(2.0)    # orientation 1-sigma that halves the stiffness

@@ -36,7 +36,7 @@ from services.common.protocol import KinematicModel
 from services.common.se3 import se3_inverse, so3_exp
 from services.kinematics.estimator import KinematicEstimator, chi2_quantile_of_sigmas
 from services.kinematics.filters import tangent_basis
-from services.robot_bridge.compliance import ComplianceLaw, MatrixGains
+from services.robot_bridge.compliance import AxisBelief, ComplianceLaw, MatrixGains
 from services.robot_bridge.controller import ImpedanceGains
 from services.robot_bridge.safety import Refusal
 from services.robot_bridge.trajectory import ArticulationPlan, JointInBase, min_jerk, plan_checks
@@ -106,22 +106,6 @@ class RefinementConfig:
 
 
 DEFLECTION_ERROR = 0.1
-
-
-@dataclass(frozen=True)
-class AxisBelief:
-    """A revolute axis in the base frame at the grasp: unit ``axis``, ``foot`` the axis point
-    nearest the grasp (m), ``cov`` 5x5 of ``(b1, b2, foot)`` with ``b`` in ``tangent_basis(axis)``."""
-
-    axis: Array
-    foot: Array
-    cov: Array
-
-    def direction_std(self) -> float:
-        return math.sqrt(max(float(np.linalg.eigvalsh(self.cov[:2, :2]).max()), 0.0))
-
-    def position_std(self) -> float:
-        return math.sqrt(max(float(np.linalg.eigvalsh(self.cov[2:, 2:]).max()), 0.0))
 
 
 def axis_belief(model: KinematicModel, T_base_frame: Array, grasp_base: Array) -> AxisBelief:
