@@ -7,7 +7,10 @@ same prediction function the kinematics library uses), publishes ``handkse/{rig}
 With ``--state-file`` the hand body model (body-frame landmark coordinates) is written atomically
 when a body is initialised and then about once a second, and restored at start: a tracker that is
 killed and restarted re-acquires the hand in the same body frame, so the kinematics service's
-displacements stay valid (``TrackerConfig.reacquire_body_frame``). ``reset`` forgets it.
+displacements stay valid (``TrackerConfig.reacquire_body_frame``). ``reset`` forgets it. A state
+file that does not hold a valid body model (unreadable, another version, any field of the wrong
+type, shape or range, an unknown frame: :mod:`services.tracker.state`) is ignored with a warning
+naming the fault, and the tracker starts without one; it never stops the start.
 """
 
 from __future__ import annotations
@@ -27,6 +30,7 @@ from services.common.service import BusLike, Service, ServiceLimits, stop_on_sig
 from services.common.state_file import StateFile
 from services.kinematics.prediction import predict_hand_pose
 from services.tracker.config import TrackerConfig
+from services.tracker.state import BodyDocumentError, body_document, body_from_document
 from services.tracker.tracker import HandBodyEstimate, HandObservation, HandTracker
 
 log = logging.getLogger(__name__)
@@ -106,21 +110,27 @@ class TrackerNode:
         self.tracker.reset()
         self.model = None
         self._saved_stamp_ns = None
-        self.state_file.save({"body": None})
+        self.state_file.save(body_document(None))
 
     def _restore(self) -> None:
-        doc = self.state_file.load()
-        body = None if doc is None else doc.get("body")
-        if body is None:
-            return
+        """Adopt the body model of the state file; on any fault in it (unreadable, of another
+        version, a field of the wrong type, shape or range: :mod:`services.tracker.state`) warn,
+        naming the fault, and start fresh. Never raises: a bad file must not stop a start."""
         try:
-            ok = self.tracker.remember_body(str(body["frame_id"]), body["points"])
-        except (KeyError, TypeError, ValueError):
-            ok = False
-        if ok:
-            log.info("restored the hand body model from %s", self.state_file.path)
-        else:
-            log.warning("ignoring an unusable body model in %s", self.state_file.path)
+            doc = self.state_file.load()
+            remembered = None if doc is None else body_from_document(doc)
+            if remembered is None:
+                return
+            if not self.tracker.remember_body(remembered.frame_id, remembered.points):
+                raise BodyDocumentError(
+                    f"body.points: fewer than min_inliers = {self.tracker.config.min_inliers} "
+                    "landmarks in the model")
+        except Exception as exc:  # whatever a corrupt file makes the restore raise: start fresh
+            log.warning("ignoring the state file %s, it does not hold a valid hand body model "
+                        "(%s: %s); starting without one", self.state_file.path,
+                        type(exc).__name__, exc)
+            return
+        log.info("restored the hand body model from %s", self.state_file.path)
 
     def _maybe_save(self, estimate: HandBodyEstimate) -> None:
         """Snapshot the body model at a (re)initialisation and then every ``SAVE_PERIOD_NS``."""
@@ -134,8 +144,7 @@ class TrackerNode:
             return
         remembered = self.tracker.remembered_body()
         if remembered is not None:
-            self.state_file.save_later({"body": {"frame_id": remembered[0],
-                                                 "points": remembered[1]}})
+            self.state_file.save_later(body_document(remembered))
             self._saved_stamp_ns = estimate.stamp_ns
 
 
