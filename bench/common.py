@@ -65,3 +65,16 @@ def write_result(name: str, result: dict[str, Any]) -> Path:
     print(json.dumps(result, indent=2))
     print(f"written {path}")
     return path
+
+
+def update_result(name: str, key: str, value: Any) -> Path:
+    """Replace ``result[key]`` of ``bench/results/<name>.json`` with ``value`` and keep the rest
+    (and the machine it names, which described the rest; ``value`` should describe its own)."""
+    path = RESULTS / f"{name}.json"
+    doc = json.loads(path.read_text()) if path.exists() else {"benchmark": name,
+                                                              "machine": machine(), "result": {}}
+    doc["result"][key] = value
+    path.write_text(json.dumps(doc, indent=2) + "\n")
+    print(json.dumps(value, indent=2))
+    print(f"updated {key} in {path}")
+    return path

@@ -1,7 +1,9 @@
 """Load benchmark: the filter services under real-time and 5x replay, one and two rigs per router.
 
 Issue 8, item 5. Goal: no drops in the filter services at 5x, end-to-end p99 < 10 ms (camera stamp
--> model published), the detector excluded.
+-> model published), the detector excluded. The flood of issue 13 (5,000 landmark messages/s:
+nothing lost silently, ``stats`` answering, the model unchanged) is ``bench/flood.py``, run by
+:func:`main` as well (``--flood-only`` runs it alone).
 
 Each scenario starts a fresh router (TCP loopback) and, per rig, one ``handkse tracker`` and one
 ``handkse kinematics`` as child processes (:class:`~services.common.processes.ProcessGroup`).
@@ -44,7 +46,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
-from bench.common import percentiles_ms, write_result
+from bench.common import percentiles_ms, update_result, write_result
 from services.common.bus import Bus, BusError, ZenohOptions
 from services.common.keys import Keys
 from services.common.processes import (
@@ -416,7 +418,15 @@ def scenarios() -> list[tuple[str, dict[str, list[Demo]], float, bool]]:
             ("2 rigs at 5x, no state files", two, 5.0, False)]
 
 
-def main() -> None:
+def main(flood_only: bool = False) -> None:
+    """Every scenario and the flood (``bench/flood.py``), written to ``bench/results/load.json``;
+    ``flood_only`` runs the flood alone and replaces only its entry there."""
+    from bench.flood import run_flood, summarise_flood
+
+    if flood_only:
+        print("-- flood", flush=True)
+        update_result("load", "flood", summarise_flood(run_flood()))
+        return
     results: dict[str, Any] = {
         "goal": "no drops in the filter services at 5x; camera stamp -> model published "
                 f"p99 < {GOAL_P99_MS:g} ms (detector excluded)",
@@ -431,6 +441,8 @@ def main() -> None:
         print(f"-- {name}", flush=True)
         run = run_scenario(name, rigs, rate, state_files=state_files)
         results["scenarios"][name] = {"state_files": state_files, **summarise(run)}
+    print("-- flood", flush=True)
+    results["flood"] = summarise_flood(run_flood())
     write_result("load", results)
 
 
@@ -442,6 +454,8 @@ if __name__ == "__main__":
     parser.add_argument("--report", type=Path, help="report file (publisher)")
     parser.add_argument("--capture-stamps", action="store_true",
                         help="keep the capture spacing of the stamps (publisher)")
+    parser.add_argument("--flood-only", action="store_true",
+                        help="run only the flood and replace its entry in bench/results/load.json")
     parser.add_argument("demos", nargs="*", metavar="OBJECT:PARTICIPANT")
     args = parser.parse_args()
     if args.publish:
@@ -449,4 +463,4 @@ if __name__ == "__main__":
         publish_rig(args.endpoint, args.publish, demos, args.rate, args.report,
                     restamp=not args.capture_stamps)
     else:
-        main()
+        main(flood_only=args.flood_only)

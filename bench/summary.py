@@ -93,6 +93,44 @@ def _render_load(result: dict[str, Any]) -> list[str]:
     if result.get("findings"):
         lines += ["", f"Findings: {result['findings']}"]
     lines.append("")
+    if result.get("flood"):
+        lines += _render_flood(result["flood"])
+    return lines
+
+
+def _render_flood(flood: dict[str, Any]) -> list[str]:
+    """The flood of ``bench/flood.py``: one row per phase."""
+    m = flood.get("machine", {})
+    rate = flood.get("flood", {})
+    lines = [f"### Flood: {rate.get('rate_per_s'):g} landmark messages/s for "
+             f"{rate.get('seconds'):g} s", "",
+             f"Run on {m.get('cpu')}, {m.get('cores')} cores, commit {m.get('commit')}, "
+             f"{m.get('date')}, load average {flood.get('load_avg_1_5_15')} (before -> after).",
+             "", "| phase | sent (flood) | tracker received / dropped / published | kinematics "
+             "received / dropped / published | silent losses | stats [ms] p50 / p99 / max | "
+             "tokens lost | model = clean run |",
+             "| --- | ---: | ---: | ---: | ---: | ---: | --- | --- |"]
+    for name, ph in flood.get("phases", {}).items():
+        c = ph.get("counts", {})
+        worst = max((st.get("ms", {}).get("max", 0.0) for st in ph.get("stats", {}).values()),
+                    default=0.0)
+        p50 = max((st.get("ms", {}).get("p50", 0.0) for st in ph.get("stats", {}).values()),
+                  default=0.0)
+        p99 = max((st.get("ms", {}).get("p99", 0.0) for st in ph.get("stats", {}).values()),
+                  default=0.0)
+        model = ph.get("model")
+        same = "-" if model is None else ("yes" if model.get("equal") else
+                                          f"no ({model.get('updates')} of "
+                                          f"{model.get('reference_updates')} updates)")
+        lines.append(f"| {name} | {c.get('landmarks_sent')} ({c.get('flood_sent')}) | "
+                     f"{c.get('tracker_received')} / {c.get('tracker_dropped')} / "
+                     f"{c.get('tracker_published')} | {c.get('kinematics_received')} / "
+                     f"{c.get('kinematics_dropped')} / {c.get('kinematics_published')} | "
+                     f"{sum(ph.get('silent_losses', {}).values())} | {p50:.1f} / {p99:.1f} / "
+                     f"{worst:.0f} | {sum(ph.get('tokens_lost', {}).values())} | {same} |")
+    goal = flood.get("goal", {})
+    lines += ["", "Goals: " + ", ".join(f"{k} {'yes' if v else 'NO'}" for k, v in goal.items())
+              + ".", ""]
     return lines
 
 

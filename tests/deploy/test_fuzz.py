@@ -640,9 +640,10 @@ class Pipeline:
     @staticmethod
     def _handled(stats: ServiceStats) -> int:
         """Inputs the service has finished with, in the counts ``stats`` shows: published,
-        rejected or skipped (kinematics ignores a not yet initialised body without a count, so
-        this is used only where one is excluded)."""
-        return stats.published + sum(stats.rejected.values()) + sum(stats.skipped.values())
+        rejected or skipped (a superseded prior aside; kinematics ignores a not yet initialised
+        body without a count, so this is used only where one is excluded)."""
+        return stats.published + sum(stats.rejected.values()) + sum(
+            n for reason, n in stats.skipped.items() if reason != "superseded")
 
     def _settle_tracker(self) -> None:
         """Wait until the tracker has every model kinematics published (a prior that changes its
