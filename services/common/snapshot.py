@@ -43,6 +43,17 @@ class SnapshotReader:
     def _where(self, key: str) -> str:
         return f"{self.path}.{key}"
 
+    def exactly(self, *keys: str) -> SnapshotReader:
+        """This reader, if the map holds exactly ``keys`` (SnapshotError naming the missing and
+        the unknown ones otherwise: a document of another layout is not partly restored)."""
+        expected = set(keys)
+        if set(self._doc) != expected:
+            missing = sorted(expected - set(self._doc))
+            unknown = sorted(map(str, set(self._doc) - expected))
+            raise SnapshotError(f"{self.path}: expected the keys {sorted(expected)} (missing "
+                                f"{missing}, unknown {unknown})")
+        return self
+
     def raw(self, key: str) -> Any:
         """The value at ``key`` as stored (SnapshotError if absent)."""
         if key not in self._doc:
@@ -93,10 +104,12 @@ class SnapshotReader:
                                 f"{_describe(value)}")
         return value
 
-    def array(self, key: str, shape: tuple[int, ...], *, allow_minus_inf: bool = False) -> Array:
+    def array(self, key: str, shape: tuple[int, ...], *, allow_minus_inf: bool = False,
+              allow_nan_rows: bool = False) -> Array:
         """A float64 copy of a numeric array (or nested list) of exactly ``shape`` (any empty one
         for an empty ``shape``), finite (``-inf`` allowed where ``allow_minus_inf``, for log
-        scores)."""
+        scores; a row along the last axis that is NaN throughout where ``allow_nan_rows``, for
+        an entry that is absent, but never a row only partly NaN)."""
         value = self.raw(key)
         where = self._where(key)
         if isinstance(value, np.ndarray):
@@ -115,6 +128,15 @@ class SnapshotReader:
         bad = ~np.isfinite(a)
         if allow_minus_inf:
             bad &= a != -np.inf
+        if allow_nan_rows:
+            if a.ndim != 2:
+                raise ValueError(f"allow_nan_rows needs a 2-d shape, got {shape}")
+            nan = np.isnan(a)
+            partial = np.flatnonzero(nan.any(axis=1) & ~nan.all(axis=1))
+            if partial.size:
+                raise SnapshotError(f"{where}: rows {partial.tolist()} are partly NaN (an entry "
+                                    "is there in full, or NaN throughout)")
+            bad &= ~nan
         if bad.any():
             raise SnapshotError(f"{where}: contains NaN or infinity")
         return a

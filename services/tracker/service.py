@@ -27,10 +27,11 @@ from services.common.config import section_from_args
 from services.common.keys import Keys
 from services.common.protocol import HandBody, HandLandmarks, KinematicModel, LandmarkStates
 from services.common.service import BusLike, Service, ServiceLimits, stop_on_signals
+from services.common.snapshot import SnapshotError
 from services.common.state_file import StateFile
 from services.kinematics.prediction import predict_hand_pose
 from services.tracker.config import TrackerConfig
-from services.tracker.state import BodyDocumentError, body_document, body_from_document
+from services.tracker.state import body_document, body_from_document
 from services.tracker.tracker import HandBodyEstimate, HandObservation, HandTracker
 
 log = logging.getLogger(__name__)
@@ -122,8 +123,8 @@ class TrackerNode:
             if remembered is None:
                 return
             if not self.tracker.remember_body(remembered.frame_id, remembered.points):
-                raise BodyDocumentError(
-                    f"body.points: fewer than min_inliers = {self.tracker.config.min_inliers} "
+                raise SnapshotError(
+                    f"tracker.body.points: fewer than min_inliers = {self.tracker.config.min_inliers} "
                     "landmarks in the model")
         except Exception as exc:  # whatever a corrupt file makes the restore raise: start fresh
             log.warning("ignoring the state file %s, it does not hold a valid hand body model "

@@ -9,8 +9,8 @@ stream at the first landmarks it gets, so no "latest stamp" can come back from a
 
 :func:`body_from_document` accepts exactly what :func:`body_document` writes. Anything else (a
 missing or unknown key, a value of another type, another shape, infinity, a row only partly NaN,
-coordinates that no hand has) raises :class:`BodyDocumentError` naming the field and the fault,
-and the tracker starts fresh.
+coordinates that no hand has) raises :class:`~services.common.snapshot.SnapshotError` naming the
+field and the fault, and the tracker starts fresh.
 """
 
 from __future__ import annotations
@@ -21,6 +21,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from services.common.snapshot import SnapshotError, SnapshotReader
 from services.tracker.landmarks import NUM_LANDMARKS
 
 Array = NDArray[np.float64]
@@ -29,10 +30,6 @@ TRACKING_FRAMES = ("camera", "world")
 # A hand is about 0.2 m long and its body frame sits at the centroid of its landmarks (or, once
 # re-acquired, at an earlier centroid of the same hand): a coordinate beyond this is no hand.
 MAX_BODY_COORDINATE_M = 1.0
-
-
-class BodyDocumentError(ValueError):
-    """A restored tracker document does not hold a body model; the text names the field."""
 
 
 @dataclass(frozen=True)
@@ -52,62 +49,22 @@ def body_document(remembered: tuple[str, Array] | None) -> dict[str, Any]:
     return {"body": {"frame_id": frame_id, "points": np.asarray(points, dtype=np.float64)}}
 
 
-def _describe(value: Any) -> str:
-    text = repr(value)
-    return f"{type(value).__name__} {text[:60]}{'...' if len(text) > 60 else ''}"
-
-
-def _expect_keys(value: Any, where: str, keys: set[str]) -> dict[str, Any]:
-    if not isinstance(value, dict):
-        raise BodyDocumentError(f"{where}: expected a map, got {_describe(value)}")
-    if set(value) != keys:
-        missing, unknown = sorted(keys - set(value)), sorted(map(str, set(value) - keys))
-        raise BodyDocumentError(f"{where}: expected the keys {sorted(keys)} (missing {missing}, "
-                                f"unknown {unknown})")
-    return value
-
-
-def _points(value: Any) -> Array:
-    where = "body.points"
-    if isinstance(value, np.ndarray):
-        if value.dtype.kind not in "fiu":
-            raise BodyDocumentError(f"{where}: expected a numeric array, got dtype {value.dtype}")
-    elif not isinstance(value, list):
-        raise BodyDocumentError(f"{where}: expected an array, got {_describe(value)}")
-    try:
-        points = np.array(value, dtype=np.float64)
-    except (TypeError, ValueError, OverflowError) as exc:
-        raise BodyDocumentError(f"{where}: not a numeric array ({exc})") from exc
-    if points.shape != (NUM_LANDMARKS, 3):
-        raise BodyDocumentError(f"{where}: expected shape ({NUM_LANDMARKS}, 3), got "
-                                f"{points.shape}")
-    if np.isinf(points).any():
-        raise BodyDocumentError(f"{where}: contains infinity")
-    nan = np.isnan(points)
-    partial = np.flatnonzero(nan.any(axis=1) & ~nan.all(axis=1))
-    if partial.size:
-        raise BodyDocumentError(f"{where}: landmarks {partial.tolist()} are partly NaN (a "
-                                "landmark is in the model with three coordinates, or not at all)")
-    largest = float(np.abs(points[~nan]).max(initial=0.0))
-    if largest > MAX_BODY_COORDINATE_M:
-        raise BodyDocumentError(f"{where}: a coordinate of {largest:.3g} m, no hand is that "
-                                f"large (limit {MAX_BODY_COORDINATE_M:g} m)")
-    return points
-
-
 def body_from_document(doc: Any) -> RememberedBody | None:
-    """The body model of a restored document (None: it remembers none); BodyDocumentError if
-    ``doc`` is not exactly what :func:`body_document` writes."""
-    body = _expect_keys(doc, "document", {"body"})["body"]
+    """The body model of a restored document (None: it remembers none); SnapshotError naming the
+    field if ``doc`` is not exactly what :func:`body_document` writes."""
+    tracker = SnapshotReader(doc, "tracker").exactly("body")
+    body = tracker.optional_map("body")
     if body is None:
         return None
-    body = _expect_keys(body, "body", {"frame_id", "points"})
-    frame_id = body["frame_id"]
-    if not isinstance(frame_id, str) or frame_id not in TRACKING_FRAMES:
-        raise BodyDocumentError(f"body.frame_id: expected one of {list(TRACKING_FRAMES)}, got "
-                                f"{_describe(frame_id)}")
-    return RememberedBody(frame_id, _points(body["points"]))
+    body.exactly("frame_id", "points")
+    frame_id = body.choice("frame_id", TRACKING_FRAMES)
+    points = body.array("points", (NUM_LANDMARKS, 3), allow_nan_rows=True)
+    present = np.isfinite(points).all(axis=1)
+    largest = float(np.abs(points[present]).max(initial=0.0))
+    if largest > MAX_BODY_COORDINATE_M:
+        raise SnapshotError(f"tracker.body.points: a coordinate of {largest:.3g} m, no hand is "
+                            f"that large (limit {MAX_BODY_COORDINATE_M:g} m)")
+    return RememberedBody(frame_id, points)
 
 
-__all__ = ["MAX_BODY_COORDINATE_M", "BodyDocumentError", "RememberedBody", "body_document",
-           "body_from_document"]
+__all__ = ["MAX_BODY_COORDINATE_M", "RememberedBody", "body_document", "body_from_document"]

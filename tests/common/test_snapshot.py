@@ -81,3 +81,29 @@ def test_bad_values_are_refused(value: Any, check: Any, message: str | None) -> 
 def test_a_document_that_is_not_a_map_is_refused() -> None:
     with pytest.raises(SnapshotError, match="doc: expected a map, got list"):
         SnapshotReader([1, 2], "doc")
+
+
+def test_rows_of_nan_mark_absent_entries_where_allowed() -> None:
+    points = np.arange(12.0).reshape(4, 3)
+    points[1] = np.nan
+    r = SnapshotReader({"p": points}, "doc")
+    got = r.array("p", (4, 3), allow_nan_rows=True)
+    assert np.isnan(got[1]).all() and np.array_equal(got[[0, 2, 3]], points[[0, 2, 3]])
+    with pytest.raises(SnapshotError, match=r"doc\.p: contains NaN or infinity"):
+        r.array("p", (4, 3))
+    points[2, 0] = np.nan
+    with pytest.raises(SnapshotError, match=r"doc\.p: rows \[2\] are partly NaN"):
+        SnapshotReader({"p": points}, "doc").array("p", (4, 3), allow_nan_rows=True)
+    points[2, 0] = np.inf
+    with pytest.raises(SnapshotError, match=r"doc\.p: contains NaN or infinity"):
+        SnapshotReader({"p": points}, "doc").array("p", (4, 3), allow_nan_rows=True)
+
+
+def test_a_map_of_another_layout_is_refused_whole() -> None:
+    r = SnapshotReader({"a": 1, "b": 2}, "doc")
+    assert r.exactly("a", "b") is r
+    with pytest.raises(SnapshotError, match=r"doc: expected the keys \['a'\] \(missing \[\], "
+                                            r"unknown \['b'\]\)"):
+        r.exactly("a")
+    with pytest.raises(SnapshotError, match=r"missing \['c'\], unknown \[\]"):
+        r.exactly("a", "b", "c")

@@ -17,17 +17,13 @@ from services.common.bus import Bus
 from services.common.keys import Keys
 from services.common.protocol import HandBody, HandLandmarks
 from services.common.service import Service
+from services.common.snapshot import SnapshotError
 from services.common.state_file import StateFile
 from services.synthetic.generator import generate
 from services.synthetic.replay import landmark_messages
 from services.tracker.config import TrackerConfig
 from services.tracker.service import SNAPSHOT_VERSION, TrackerNode
-from services.tracker.state import (
-    BodyDocumentError,
-    RememberedBody,
-    body_document,
-    body_from_document,
-)
+from services.tracker.state import RememberedBody, body_document, body_from_document
 from tests.common.service_harness import ServiceHarness
 from tests.conftest import Processes, output_of, wait_routed, wait_until, zenoh_args
 
@@ -104,35 +100,35 @@ def _row(row: int, values: list[float]) -> Callable[[dict[str, Any]], dict[str, 
 
 # (id, the fault, what the warning names)
 DOCUMENT_FAULTS: list[Fault] = [
-    ("body-str", _set("body", "a body"), "body: expected a map, got str"),
-    ("body-list", _set("body", [1, 2, 3]), "body: expected a map, got list"),
+    ("body-str", _set("body", "a body"), "tracker.body: expected a map, got str"),
+    ("body-list", _set("body", [1, 2, 3]), "tracker.body: expected a map, got list"),
     ("frame-int", _set("body.frame_id", 5),
-     "body.frame_id: expected one of ['camera', 'world'], got int"),
+     "tracker.body.frame_id: expected one of ['camera', 'world'], got int"),
     ("frame-bogus", _set("body.frame_id", "mars"),
-     "body.frame_id: expected one of ['camera', 'world'], got str"),
-    ("frame-bytes", _set("body.frame_id", b"camera"), "body.frame_id: expected one of"),
+     "tracker.body.frame_id: expected one of ['camera', 'world'], got str"),
+    ("frame-bytes", _set("body.frame_id", b"camera"), "tracker.body.frame_id: expected one of"),
     ("frame-missing", _set("body.frame_id", ...),
-     "body: expected the keys ['frame_id', 'points'] (missing ['frame_id']"),
+     "tracker.body: expected the keys ['frame_id', 'points'] (missing ['frame_id']"),
     ("unknown-stamp", _set("body.last_stamp_ns", 2**63 - 1), "unknown ['last_stamp_ns']"),
-    ("points-str", _set("body.points", "many"), "body.points: expected an array, got str"),
-    ("points-map", _set("body.points", {"a": 1}), "body.points: expected an array, got dict"),
+    ("points-str", _set("body.points", "many"), "tracker.body.points: expected an array, got str"),
+    ("points-map", _set("body.points", {"a": 1}), "tracker.body.points: expected an array, got dict"),
     ("points-strings", _set("body.points", [["a", "b", "c"]] * 21),
-     "body.points: not a numeric array"),
+     "tracker.body.points: not a numeric array"),
     ("points-bool", _set("body.points", np.zeros((21, 3), dtype=bool)),
-     "body.points: expected a numeric array"),
+     "tracker.body.points: expected a numeric array"),
     ("shape-20", _set("body.points", np.zeros((20, 3))),
-     "body.points: expected shape (21, 3), got (20, 3)"),
-    ("shape-3", _set("body.points", np.zeros(3)), "body.points: expected shape (21, 3), got (3,)"),
-    ("inf", _row(2, [np.inf, 0.0, 0.0]), "body.points: contains infinity"),
-    ("partly-nan", _row(2, [np.nan, 0.0, 0.0]), "body.points: landmarks [2] are partly NaN"),
-    ("huge", _set("body.points", np.full((21, 3), 1e300)), "body.points: a coordinate of 1e+300 m"),
-    ("far", _row(7, [0.0, 0.0, 2.5]), "body.points: a coordinate of 2.5 m"),
+     "tracker.body.points: expected shape (21, 3), got (20, 3)"),
+    ("shape-3", _set("body.points", np.zeros(3)), "tracker.body.points: expected shape (21, 3), got (3,)"),
+    ("inf", _row(2, [np.inf, 0.0, 0.0]), "tracker.body.points: contains NaN or infinity"),
+    ("partly-nan", _row(2, [np.nan, 0.0, 0.0]), "tracker.body.points: rows [2] are partly NaN"),
+    ("huge", _set("body.points", np.full((21, 3), 1e300)), "tracker.body.points: a coordinate of 1e+300 m"),
+    ("far", _row(7, [0.0, 0.0, 2.5]), "tracker.body.points: a coordinate of 2.5 m"),
 ]
 # a valid document that the tracker refuses: a model without enough landmarks to register
 NODE_FAULTS: list[Fault] = [
     *DOCUMENT_FAULTS,
     ("no-landmarks", _set("body.points", np.full((21, 3), np.nan)),
-     "body.points: fewer than min_inliers = 6 landmarks in the model"),
+     "tracker.body.points: fewer than min_inliers = 6 landmarks in the model"),
 ]
 
 
@@ -162,15 +158,15 @@ def test_a_landmark_outside_the_model_is_a_row_of_nan(written: dict[str, Any]) -
 def test_a_bad_document_names_its_fault(written: dict[str, Any],
                                         fault: Callable[[dict[str, Any]], dict[str, Any]],
                                         message: str) -> None:
-    with pytest.raises(BodyDocumentError) as err:
+    with pytest.raises(SnapshotError) as err:
         body_from_document(fault(written))
     assert message in str(err.value)
 
 
 def test_a_document_with_other_keys_is_refused(written: dict[str, Any]) -> None:
-    with pytest.raises(BodyDocumentError, match=r"document: .*unknown \['estimator'\]"):
+    with pytest.raises(SnapshotError, match=r"tracker: .*unknown \['estimator'\]"):
         body_from_document({**written, "estimator": {}})
-    with pytest.raises(BodyDocumentError, match=r"document: .*missing \['body'\]"):
+    with pytest.raises(SnapshotError, match=r"tracker: .*missing \['body'\]"):
         body_from_document({})
 
 
@@ -286,7 +282,8 @@ def test_a_tracker_process_with_a_corrupt_state_file_starts_and_tracks(
                or tracker.poll() is not None, 30, what="tracker liveliness")
     assert tracker.poll() is None, output_of(tracker)
     log = output_of(tracker)
-    assert "ignoring the state file" in log and "body.frame_id: expected one of" in log, log
+    assert "ignoring the state file" in log and "tracker.body.frame_id: expected one of" in log, \
+        log
     assert "Traceback" not in log
 
     frames = key_frames[:60]
