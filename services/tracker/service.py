@@ -18,6 +18,8 @@ from __future__ import annotations
 import argparse
 import logging
 import threading
+import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -28,11 +30,12 @@ from services.common.keys import Keys
 from services.common.protocol import HandBody, HandLandmarks, KinematicModel, LandmarkStates
 from services.common.service import BusLike, Service, ServiceLimits, stop_on_signals
 from services.common.snapshot import SnapshotError
+from services.common.stamps import StampLimits, StampWindow
 from services.common.state_file import StateFile
 from services.kinematics.prediction import predict_hand_pose
 from services.tracker.config import TrackerConfig
 from services.tracker.state import body_document, body_from_document
-from services.tracker.tracker import HandBodyEstimate, HandObservation, HandTracker
+from services.tracker.tracker import FRAME_REJECTIONS, HandBodyEstimate, HandObservation, HandTracker
 
 log = logging.getLogger(__name__)
 
@@ -70,9 +73,15 @@ class TrackerNode:
     """Binds a :class:`HandTracker` to the bus through a :class:`Service`."""
 
     def __init__(self, service: Service, config: TrackerConfig,
-                 state_file: Path | None = None) -> None:
+                 state_file: Path | None = None, stamp_limits: StampLimits | None = None,
+                 clock: Callable[[], int] = time.time_ns) -> None:
         self.service = service
         self.tracker = HandTracker(config)
+        # A stamp far ahead must not become the latest (every real frame would then be out of
+        # order), and a demonstration keeps the frame_id of its first landmarks.
+        self.clock = clock
+        self.stamps = StampWindow(stamp_limits)
+        self._label: str | None = None
         self.model: KinematicModel | None = None
         self.state_file = StateFile(state_file, SNAPSHOT_VERSION)
         self._saved_stamp_ns: int | None = None
@@ -89,12 +98,24 @@ class TrackerNode:
         return None if self.model is None else predict_hand_pose(self.model, stamp_ns)
 
     def on_landmarks(self, message: HandLandmarks) -> None:
+        received = self.clock()
+        far = self.stamps.check(message.stamp_ns, received)
+        if far is not None:
+            self.service.reject("far_future", f"landmarks: {far}")
+            return
+        if self._label is not None and message.frame_id != self._label:
+            self.service.reject("frame_mismatch", f"landmarks in {message.frame_id!r}, this "
+                                f"demonstration's are in {self._label!r} (reset to start anew)")
+            return
         with self.service.latency.measure("step"):
             result = self.tracker.step(message.stamp_ns, observations(message),
                                        T_world_camera=message.T_world_camera,
                                        kinematic_prior=self._prior)
         for reason in result.rejected:
             self.service.reject(reason, f"landmarks at {message.stamp_ns} ns")
+        if result.reason not in FRAME_REJECTIONS:
+            self.stamps.accept(message.stamp_ns, received)
+            self._label = message.frame_id
         if result.reason is not None and result.skipped:
             skipped = self.service.skipped
             skipped[result.reason] = skipped.get(result.reason, 0) + 1
@@ -109,6 +130,8 @@ class TrackerNode:
 
     def reset(self) -> None:
         self.tracker.reset()
+        self.stamps.forget()
+        self._label = None
         self.model = None
         self._saved_stamp_ns = None
         self.state_file.save(body_document(None))
@@ -150,9 +173,10 @@ class TrackerNode:
 
 
 def run(bus: BusLike, keys: Keys, config: TrackerConfig, stop: threading.Event,
-        state_file: Path | None = None, limits: ServiceLimits | None = None) -> None:
+        state_file: Path | None = None, limits: ServiceLimits | None = None,
+        stamp_limits: StampLimits | None = None) -> None:
     service = Service("tracker", bus, keys, limits)
-    node = TrackerNode(service, config, state_file)
+    node = TrackerNode(service, config, state_file, stamp_limits)
     service.run(stop)
     node.state_file.flush()
 
@@ -169,5 +193,6 @@ def main(args: argparse.Namespace) -> int:
     stop_on_signals(stop)
     with Bus(options_from_args(args, section_from_args(args, "zenoh"))) as bus:
         print("tracker ready", flush=True)
-        run(bus, Keys(args.rig), config, stop, args.state_file, section_from_args(args, "limits"))
+        run(bus, Keys(args.rig), config, stop, args.state_file, section_from_args(args, "limits"),
+            section_from_args(args, "stamps"))
     return 0

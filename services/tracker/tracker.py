@@ -80,6 +80,7 @@ FrameRejection = Literal["bad_stamp", "duplicate_stamp", "out_of_order_stamp", "
                          "frame_mismatch"]
 HandRejection = Literal["bad_hand", "bad_shape", "bad_handedness", "non_finite_visibility",
                         "non_finite_score", "duplicate_handedness"]
+FRAME_REJECTIONS: frozenset[str] = frozenset(get_args(FrameRejection))
 Rejection = FrameRejection | HandRejection | Literal["bad_kinematic_prior"]
 Skip = Literal["no_hand", "too_few_landmarks"]
 SKIP_REASONS: tuple[Skip, ...] = get_args(Skip)

@@ -583,9 +583,6 @@ def test_robot_bridge_counts_an_articulate_query_without_payload(
 SEMANTIC = Keys("fuzzsem")
 MS = 1_000_000
 HOUR_NS = 3600 * 10**9
-NEEDS_TRACKER_GATES = pytest.mark.xfail(
-    strict=True, reason="needs stamp and frame gates in the tracker (issue 13, finding 5: no "
-                        "branch does them yet)")
 
 
 @dataclass
@@ -834,7 +831,6 @@ def test_bodies_far_ahead_far_off_or_in_another_frame_change_nothing(
     assert (restored.updates, restored.stamp_ns) == (final.updates, final.stamp_ns)
 
 
-@NEEDS_TRACKER_GATES
 def test_landmarks_far_ahead_or_relabelled_cannot_freeze_or_switch_the_tracker(
         pipeline: Pipeline, key_demo: list[HandLandmarks]) -> None:
     """Landmarks stamped 2^63 - 1 or an hour ahead are refused as far_future and never become the
