@@ -29,6 +29,7 @@ def _names(text: str | None, default: tuple[str, ...]) -> tuple[str, ...]:
 
 
 def main(args: argparse.Namespace) -> int:
+    from services.common.errors import UserError
     from services.common.progress import Progress
     from services.evaluation.figures import describe_data
     from services.evaluation.report import write_report
@@ -40,7 +41,16 @@ def main(args: argparse.Namespace) -> int:
     variants = _names(args.variant, ("cut",))
     conditions = _names(args.condition, ("plain",))
     free = True if args.free else (False if args.no_free else None)
-    task_list = tasks(args.split, args.partition, args.seeds, variants, conditions, free)
+    try:
+        task_list = tasks(args.split, args.partition, args.seeds, variants, conditions, free)
+        for m in methods:
+            if m not in METHODS:
+                raise ValueError(f"unknown method {m!r}; choose from {', '.join(METHODS)}")
+    except ValueError as exc:
+        raise UserError(str(exc)) from None
+    if not [t for t in task_list if t.split != "free"]:
+        raise UserError("no demonstrations to run: a gap condition (dropout, regrasp_gap) "
+                        "applies to the cut and whole variants only")
     names, partition = resolve_split(args.split, args.partition)
     jobs = args.jobs or max(1, (os.cpu_count() or 1))
     with Progress(1) as progress:  # the total is set by the evaluation

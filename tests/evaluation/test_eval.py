@@ -60,6 +60,17 @@ def test_eval_household_conditions_writes_named_files(procs: Processes, tmp_path
         assert (out / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
+def test_eval_refuses_bad_choices_in_one_line(procs: Processes, tmp_path: Path) -> None:
+    for args, says in ((("--variant", "cut,long"), "unknown variant 'long'"),
+                       (("--methods", "ours,magic"), "unknown method 'magic'"),
+                       (("--variant", "sequence", "--condition", "dropout"),
+                        "no demonstrations to run")):
+        result = procs.run("eval", *args, "--out", str(tmp_path / "x"), timeout=120)
+        assert result.returncode == 2, result.stdout + result.stderr
+        assert says in result.stderr and "Traceback" not in result.stderr
+    assert not (tmp_path / "x").exists()
+
+
 def test_tune_writes_a_loadable_config(procs: Processes, tmp_path: Path) -> None:
     out = tmp_path / "tuned.toml"
     result = procs.run("tune", "--trials", "2", "--jobs", "2", "--out", str(out), timeout=900)
