@@ -43,6 +43,11 @@ ScrewMimic-style (:func:`screwmimic_style`)
     "revolute", angle of the position about the axis for "revolute3d", displacement along the
     axis for "prismatic"). For speed the pair search of candidate 1 uses at most 60 evenly spaced
     frames (1,770 pairs; the original tries all pairs); scores always use every frame.
+
+    ``front_end="ransac"`` (:func:`hand_poses_ransac`) replaces the per-frame weighted Kabsch by
+    the tracker's RANSAC-Kabsch, still frame by frame: the evaluation's ``screwmimic_robust``
+    is ``fair`` on those poses, so that the comparison is not won against an unrobust front-end
+    (docs/evaluation.md#screwmimic-style).
 """
 
 from __future__ import annotations
@@ -389,6 +394,70 @@ def hand_poses_kabsch(points: NDArray[np.floating], visibility: NDArray[np.float
     return HandPoses(poses=np.stack(poses), frame_index=np.asarray(idx, dtype=np.int64))
 
 
+@dataclass(frozen=True)
+class RobustPoseConfig:
+    """RANSAC-Kabsch per-frame pose front-end (``front_end="ransac"``).
+
+    Each landmark's per-axis variance is ``std^2 / visibility`` (a low score, a less trusted
+    landmark, as the weights of the plain front-end); a correspondence is an inlier when its
+    residual is below ``inlier_sigma`` of the pair's combined standard deviation.
+    """
+
+    # Per-axis landmark noise [m]: the detector's lateral error (10 % of an 8.5 cm palm,
+    # docs/detector.md); depth noise is larger, which the gate's width absorbs.
+    landmark_std_m: float = 0.007
+    # sqrt of the chi-square (3 dof) 99 % quantile, 11.34: the gate in sigma.
+    inlier_sigma: float = math.sqrt(11.345)
+    iterations: int = 100
+    refinements: int = 2
+    # A frame's pose needs this many inliers (a third of the hand's 21 landmarks).
+    min_inliers: int = 7
+    seed: int = 1
+
+
+def hand_poses_ransac(points: NDArray[np.floating], visibility: NDArray[np.floating],
+                      visibility_threshold: float = DEFAULT_VISIBILITY_THRESHOLD,
+                      config: RobustPoseConfig | None = None) -> HandPoses:
+    """Per-frame hand poses with outlier rejection: :func:`hand_poses_kabsch` with the
+    weighted Kabsch replaced by the tracker's RANSAC-Kabsch
+    (:func:`services.tracker.ransac.rigid_ransac`; MSAC over minimal sets of 3, refit on the
+    inliers), still frame by frame against the first usable frame, with no temporal filter.
+    Frames whose motion has fewer than ``min_inliers`` inliers get no pose.
+    """
+    from services.tracker.ransac import rigid_ransac
+
+    cfg = config or RobustPoseConfig()
+    pts = np.asarray(points, dtype=float)
+    vis = np.asarray(visibility, dtype=float)
+    usable = np.all(np.isfinite(pts), axis=2) & (vis >= visibility_threshold)
+    enough = np.flatnonzero(usable.sum(axis=1) >= cfg.min_inliers)
+    if len(enough) == 0:
+        raise ValueError("no frame has enough usable landmarks")
+    ref = int(enough[0])
+    origin = pts[ref, 0] if usable[ref, 0] else pts[ref, usable[ref]].mean(axis=0)
+    var = cfg.landmark_std_m ** 2 / np.maximum(vis, 1e-3)
+    rng = np.random.default_rng(cfg.seed)
+    poses: list[Array] = []
+    idx: list[int] = []
+    for k in range(ref, len(pts)):
+        both = usable[ref] & usable[k]
+        if both.sum() < cfg.min_inliers:
+            continue
+        fit = rigid_ransac(pts[ref, both], pts[k, both], var[ref, both], var[k, both],
+                           iterations=cfg.iterations, threshold=cfg.inlier_sigma,
+                           refinements=cfg.refinements, rng=rng)
+        if fit is None or int(fit.inliers.sum()) < cfg.min_inliers:
+            continue
+        T = np.eye(4)
+        T[:3, :3] = fit.rotation
+        T[:3, 3] = fit.rotation @ origin + fit.translation
+        poses.append(T)
+        idx.append(k)
+    if not poses:
+        raise ValueError("no frame's motion has enough inliers")
+    return HandPoses(poses=np.stack(poses), frame_index=np.asarray(idx, dtype=np.int64))
+
+
 def _orientation_cost(R: Array, R_hat: Array) -> Array:
     """``1 - <q, q_hat>^2 = (3 - tr(R^T R_hat)) / 4`` summed over the last frame axis."""
     tr = np.einsum("...kij,...kij->...k", R, R_hat)
@@ -531,16 +600,22 @@ def screwmimic_style_fit(stamps_ns: NDArray[np.int64], points: NDArray[np.floati
                          visibility: NDArray[np.floating], *,
                          variant: Literal["faithful", "fair"] = "faithful",
                          visibility_threshold: float = DEFAULT_VISIBILITY_THRESHOLD,
-                         seed: int = 1) -> ScrewMimicFit:
+                         seed: int = 1,
+                         front_end: Literal["kabsch", "ransac"] = "kabsch") -> ScrewMimicFit:
     """ScrewMimic-style baseline with all candidates and scores (module docstring).
 
+    ``front_end``: the per-frame hand poses, ``"kabsch"`` (:func:`hand_poses_kabsch`, the
+    FrankMocap stand-in) or ``"ransac"`` (:func:`hand_poses_ransac`, with outlier rejection).
     ``stamps_ns`` is accepted for a uniform interface; the original uses frame indices only.
     """
     if variant not in ("faithful", "fair"):
         raise ValueError(f"variant must be 'faithful' or 'fair', got {variant!r}")
+    if front_end not in ("kabsch", "ransac"):
+        raise ValueError(f"front_end must be 'kabsch' or 'ransac', got {front_end!r}")
     if len(stamps_ns) != len(points):
         raise ValueError("stamps and points differ in length")
-    hp = hand_poses_kabsch(points, visibility, visibility_threshold)
+    hp = (hand_poses_kabsch(points, visibility, visibility_threshold) if front_end == "kabsch"
+          else hand_poses_ransac(points, visibility, visibility_threshold))
     p = hp.poses[:, :3, 3]
     R = hp.poses[:, :3, :3]
     faithful = variant == "faithful"
@@ -561,7 +636,9 @@ def screwmimic_style(stamps_ns: NDArray[np.int64], points: NDArray[np.floating],
                      visibility: NDArray[np.floating], *,
                      variant: Literal["faithful", "fair"] = "faithful",
                      visibility_threshold: float = DEFAULT_VISIBILITY_THRESHOLD,
-                     seed: int = 1) -> JointEstimate:
+                     seed: int = 1,
+                     front_end: Literal["kabsch", "ransac"] = "kabsch") -> JointEstimate:
     """ScrewMimic-style joint estimate from a landmark stream (module docstring)."""
     return screwmimic_style_fit(stamps_ns, points, visibility, variant=variant,
-                                visibility_threshold=visibility_threshold, seed=seed).estimate
+                                visibility_threshold=visibility_threshold, seed=seed,
+                                front_end=front_end).estimate

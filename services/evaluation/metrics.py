@@ -1,4 +1,6 @@
-"""Evaluation metrics for estimated joints: tangent error and its companions.
+"""Evaluation metrics for estimated joints: tangent error and its companions, the calibration
+of a published covariance (docs/evaluation.md#calibration) and times to a usable model
+(docs/evaluation.md#times).
 
 Definitions follow docs/evaluation.md#tangent-error (tangent error of
 Heppert et al., IROS 2022, as used by Pfisterer et al., ICRA 2025, Eq. 9), reimplemented from
@@ -21,6 +23,8 @@ from typing import Protocol
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+
+from services.kinematics.filters.geometry import tangent_basis
 
 Array = NDArray[np.float64]
 
@@ -331,24 +335,21 @@ def tangent_errors_over_time(gt: JointLike, estimates: Sequence[JointLike | None
 
 
 def time_to_converge(stamps_ns: ArrayLike, errors_rad: ArrayLike,
-                     threshold_deg: float = CONVERGENCE_THRESHOLD_DEG) -> float | None:
-    """Seconds from the first stamp until the error stays below ``threshold_deg`` for good.
+                     threshold_deg: float = CONVERGENCE_THRESHOLD_DEG,
+                     start_ns: int | None = None) -> float | None:
+    """Seconds from ``start_ns`` (default: the first stamp) until the error stays below
+    ``threshold_deg`` for good.
 
     ``stamps_ns`` (M,) increasing int stamps, ``errors_rad`` (M,) the tangent error of the
     estimate available at each stamp (e.g. :func:`tangent_errors_over_time`). Returns the time of
     the first sample from which every later error is below the threshold, or ``None`` if the last
-    one is not.
+    one is not (:func:`time_held_from`).
     """
     st = np.asarray(stamps_ns, dtype=np.int64).reshape(-1)
     err = np.asarray(errors_rad, dtype=float).reshape(-1)
     if st.shape != err.shape or len(st) == 0:
         raise ValueError("stamps and errors must be non-empty and of equal length")
-    below = err < math.radians(threshold_deg)
-    if not below[-1]:
-        return None
-    above = np.flatnonzero(~below)
-    first = 0 if len(above) == 0 else int(above[-1]) + 1
-    return float(st[first] - st[0]) * 1e-9
+    return time_held_from(st, err < math.radians(threshold_deg), start_ns)
 
 
 def time_to_converge_estimates(stamps_ns: ArrayLike, estimates: Sequence[JointLike | None],
@@ -357,3 +358,131 @@ def time_to_converge_estimates(stamps_ns: ArrayLike, estimates: Sequence[JointLi
     """:func:`time_to_converge` of a time series of estimates (None = no estimate yet)."""
     return time_to_converge(stamps_ns, tangent_errors_over_time(gt, estimates, positions),
                             threshold_deg)
+
+
+# --------------------------------------------------------------------------------------------
+# Calibration of the published covariance (docs/evaluation.md#calibration)
+# --------------------------------------------------------------------------------------------
+
+# 90 % quantile of the chi-square distribution with 2 degrees of freedom: its CDF is
+# 1 - exp(-x / 2), so the quantile is -2 ln(1 - 0.9), exactly.
+CHI2_2DOF_90 = -2.0 * math.log(0.1)
+INTERVAL_LEVEL = 0.9
+
+
+def _mahalanobis2(r: Array, cov: Array) -> float:
+    """``r' cov^-1 r`` for a 2-vector; inf when ``cov`` is not finite and positive definite
+    (a covariance that claims certainty, or none, covers nothing)."""
+    c = np.asarray(cov, dtype=float)
+    if c.shape != (2, 2) or not np.all(np.isfinite(c)):
+        return math.inf
+    c = 0.5 * (c + c.T)
+    try:
+        chol = np.linalg.cholesky(c)
+    except np.linalg.LinAlgError:
+        return math.inf
+    y = np.linalg.solve(chol, r)
+    return float(y @ y)
+
+
+def axis_direction_d2(true_axis: ArrayLike, est_axis: ArrayLike, cov_b: ArrayLike) -> float:
+    """Squared Mahalanobis distance of the true axis direction from the estimated one.
+
+    ``est_axis`` (3,) unit estimated direction ``u``, ``cov_b`` (2, 2) [rad^2] the published
+    covariance of its tangent coordinates ``(b1, b2)`` in ``tangent_basis(u)`` (``B``, 3x2;
+    docs/protocol.md), ``true_axis`` (3,) the true direction, sign-folded to ``a . u >= 0``
+    (a line's direction has no sign). The tangent coordinates that turn ``u`` into ``a``
+    exactly, ``Exp(u x (B b)) u = a``, are ``b = theta B'a / |B'a|`` with ``theta`` the angle
+    between them; returns ``b' cov_b^-1 b``, chi-square with 2 dof when the covariance is right.
+    """
+    u = np.asarray(est_axis, dtype=float).reshape(3)
+    u = u / np.linalg.norm(u)
+    a = np.asarray(true_axis, dtype=float).reshape(3)
+    a = a / np.linalg.norm(a)
+    if a @ u < 0.0:
+        a = -a
+    s = tangent_basis(u).T @ a
+    sn = float(np.linalg.norm(s))
+    theta = math.atan2(sn, float(a @ u))
+    b = s * (theta / sn) if sn > 0.0 else np.zeros(2)
+    return _mahalanobis2(b, np.asarray(cov_b, dtype=float))
+
+
+def axis_position_d2(true_axis: ArrayLike, true_point: ArrayLike, est_axis: ArrayLike,
+                     est_point: ArrayLike, cov_point: ArrayLike) -> float:
+    """Squared Mahalanobis distance of the true revolute axis from the estimated axis point.
+
+    ``est_point`` (3,) [m] the published point ``p`` of the estimated axis ``u`` (3,), with its
+    published covariance ``cov_point`` (3, 3) [m^2]; ``true_axis``/``true_point`` any point and
+    the direction of the true axis line. The true line meets the plane through ``p`` normal to
+    ``u`` at ``x``; the residual ``r = B'(x - p)`` (2,) in ``tangent_basis(u)`` is compared
+    with the covariance projected on that plane, ``B' cov_point B``: returns
+    ``r' (B' cov_point B)^-1 r``, chi-square with 2 dof when the covariance is right. A true
+    axis (nearly) parallel to the plane never meets it: inf.
+    """
+    u = np.asarray(est_axis, dtype=float).reshape(3)
+    u = u / np.linalg.norm(u)
+    a = np.asarray(true_axis, dtype=float).reshape(3)
+    a = a / np.linalg.norm(a)
+    p = np.asarray(est_point, dtype=float).reshape(3)
+    q = np.asarray(true_point, dtype=float).reshape(3)
+    along = float(a @ u)
+    if abs(along) < 1e-9:
+        return math.inf
+    x = q + (float((p - q) @ u) / along) * a
+    B = tangent_basis(u)
+    cov = np.asarray(cov_point, dtype=float).reshape(3, 3)
+    return _mahalanobis2(B.T @ (x - p), B.T @ cov @ B)
+
+
+def coverage(d2: Sequence[float], quantile: float = CHI2_2DOF_90) -> tuple[int, int]:
+    """(covered, defined): how many of the squared distances ``d2`` lie inside the interval
+    (``d2 <= quantile``) and how many are defined (NaN = no interval to check; inf counts as
+    defined and outside)."""
+    values = [float(v) for v in d2 if not math.isnan(float(v))]
+    return sum(v <= quantile for v in values), len(values)
+
+
+# --------------------------------------------------------------------------------------------
+# Times to a usable model (docs/evaluation.md#times)
+# --------------------------------------------------------------------------------------------
+
+
+def time_held_from(stamps_ns: ArrayLike, ok: ArrayLike, start_ns: int | None = None
+                   ) -> float | None:
+    """Seconds from ``start_ns`` (default: the first stamp) until ``ok`` holds for good.
+
+    ``stamps_ns`` (M,) increasing int stamps, ``ok`` (M,) bool per stamp. Returns the time of
+    the first stamp from which every later ``ok`` is true (0 if that is before ``start_ns``),
+    or ``None`` if the last one is false ("never").
+    """
+    st = np.asarray(stamps_ns, dtype=np.int64).reshape(-1)
+    good = np.asarray(ok, dtype=bool).reshape(-1)
+    if st.shape != good.shape or len(st) == 0:
+        raise ValueError("stamps and flags must be non-empty and of equal length")
+    if not good[-1]:
+        return None
+    bad = np.flatnonzero(~good)
+    first = 0 if len(bad) == 0 else int(bad[-1]) + 1
+    start = int(st[0]) if start_ns is None else int(start_ns)
+    return float(max(0, int(st[first]) - start)) * 1e-9
+
+
+@dataclass(frozen=True)
+class TimeSummary:
+    """Times [s] over demonstrations: median and 90th percentile of those that got there
+    (NaN if none did), how many did, and how many never did."""
+
+    median_s: float
+    p90_s: float
+    reached: int
+    never: int
+
+
+def summarise_times(times: Sequence[float | None]) -> TimeSummary:
+    """:class:`TimeSummary` of per-demonstration times (None or NaN = never)."""
+    got = [float(t) for t in times if t is not None and not math.isnan(float(t))]
+    never = len(times) - len(got)
+    if not got:
+        return TimeSummary(math.nan, math.nan, 0, never)
+    return TimeSummary(float(np.median(got)), float(np.percentile(got, 90)), len(got), never)

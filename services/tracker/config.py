@@ -157,6 +157,10 @@ class TrackerConfig:
     # the body-model refinement's residual gate), uniform RANSAC sampling and residual weights.
     # Everything else is the same pipeline (covariance calibration, body-model refinement, ...).
     use_uncertainty_models: bool = True
+    # With use_uncertainty_models False, keep the outlier gates of both levels and of the
+    # body-model refinement on (the evaluation's "gates on" ablation, which separates the
+    # gates from the noise models). No effect with the uncertainty models on.
+    ablation_gates: bool = False
 
     # Which detected hand to track: "left", "right", or "best" (the highest-scoring hand when
     # the initialisation window starts; that handedness is kept, also across a re-initialisation,
@@ -244,6 +248,11 @@ class TrackerConfig:
             elif f.name in _TABLE_ONE_GATES:
                 values[f.name] = getattr(self, f.name) / math.sqrt(c)
         return replace(self, variance_unit_m2=1.0, **values)  # type: ignore[arg-type]
+
+    @property
+    def outlier_gates(self) -> bool:
+        """Whether the Mahalanobis gates (landmark, body, body-model refinement) are on."""
+        return self.use_uncertainty_models or self.ablation_gates
 
     def saliency_factors(self) -> tuple[float, ...]:
         """s_k per landmark in MediaPipe order (21 values); the wrist's entry is 1.0 (unused)."""

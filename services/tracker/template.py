@@ -81,7 +81,7 @@ class BodyTemplate:
         R_T, t_T = T_frame_body[:3, :3], T_frame_body[:3, 3]
         obs = (positions - t_T) @ R_T  # T^-1 z, row-wise
         new = old.copy()
-        if accepted.size and cfg.use_uncertainty_models:  # an outlier gate: off in the ablation
+        if accepted.size and cfg.outlier_gates:  # an outlier gate (TrackerConfig.outlier_gates)
             accepted = accepted[d2 < _CHI2_3_99]
         if accepted.size:
             n = np.minimum(self._count[accepted] + 1.0, cfg.template_memory_frames)

@@ -283,7 +283,7 @@ class HandTracker:
         if self._last_stamp_ns is not None:
             self._bank.predict((stamp_ns - self._last_stamp_ns) * 1e-9)
         self._last_stamp_ns = stamp_ns
-        update = self._bank.update(z, R_lm, gate=self._cfg.use_uncertainty_models,
+        update = self._bank.update(z, R_lm, gate=self._cfg.outlier_gates,
                                    v_start=self._start_velocities(slot, z))
 
         if slot is None or slot not in observed:
@@ -594,7 +594,7 @@ class HandTracker:
             dt = (stamp_ns - self._body_stamp_ns) * 1e-9
             predictions = ekf.predict(dt, self._kinematic(prior, stamp_ns))
             step = select_and_gate(predictions, positions[idx], template.points[idx],
-                                   R_rb[idx], cfg.mahalanobis_rb, gate=cfg.use_uncertainty_models)
+                                   R_rb[idx], cfg.mahalanobis_rb, gate=cfg.outlier_gates)
             rejected = idx[step.rejected]
             status[rejected] = STATUS_OUTLIER
             if rejected.size:

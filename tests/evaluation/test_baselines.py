@@ -15,6 +15,7 @@ from services.evaluation.baselines import (
     fit_circle,
     fit_line,
     hand_poses_kabsch,
+    hand_poses_ransac,
     regal_style,
     regal_style_fit,
     regal_style_from_trajectory,
@@ -178,3 +179,48 @@ def test_landmark_filter_gates_outliers() -> None:
     assert f.rejected[30, 0] and not f.accepted[30, 0]
     assert f.counts()[0] == n - 1 and f.counts()[1] == n - 10
     assert abs(f.positions[30, 0, 2] - 0.7) < 0.01
+
+
+def test_ransac_poses_are_exact_and_reject_outliers() -> None:
+    rng = np.random.default_rng(2)
+    src = rng.normal(size=(21, 3)) * 0.05
+    n = 12
+    Rs = [so3_exp(np.array([0.0, 0.0, 0.1 * k])) for k in range(n)]
+    ts = [np.array([0.01 * k, 0.0, 0.6]) for k in range(n)]
+    clean = np.stack([src @ R.T + t for R, t in zip(Rs, ts, strict=True)])
+    vis = np.ones((n, 21))
+    hp = hand_poses_ransac(clean, vis)
+    assert list(hp.frame_index) == list(range(n))
+    for k in range(n):
+        np.testing.assert_allclose(hp.poses[k, :3, :3] @ Rs[0].T, Rs[k] @ Rs[0].T, atol=1e-9)
+    # Four landmarks per frame thrown 5-15 cm off (depth edges, swaps): the plain Kabsch pose
+    # follows them, the RANSAC pose does not.
+    noisy = clean.copy()
+    for k in range(1, n):
+        bad = rng.choice(21, 4, replace=False)
+        noisy[k, bad] += rng.uniform(0.05, 0.15, (4, 1)) * rng.normal(size=(4, 3))
+    robust = hand_poses_ransac(noisy, vis)
+    plain = hand_poses_kabsch(noisy, vis)
+    origin = clean[0, 0]
+
+    def rotation_error(T: np.ndarray, k: int) -> float:
+        d = T[:3, :3].T @ Rs[k] @ Rs[0].T
+        return float(np.arccos(np.clip((np.trace(d) - 1) / 2, -1, 1)))
+
+    for k in range(1, n):
+        truth_position = Rs[k] @ Rs[0].T @ (origin - ts[0]) + ts[k]
+        assert np.linalg.norm(robust.poses[k, :3, 3] - truth_position) < 1e-6
+        assert rotation_error(robust.poses[k], k) < 1e-6
+    assert max(rotation_error(plain.poses[k], k) for k in range(1, n)) > math.radians(5.0)
+
+
+@pytest.mark.parametrize("name", [PRISMATIC, REVOLUTE])
+def test_screwmimic_ransac_front_end_is_exact_on_noise_free_data(
+        demos: dict[str, Demonstration], name: str) -> None:
+    d = demos[name]
+    gt = JointEstimate.from_joint(d.truth.joint)
+    pts, vis = noise_free(d)
+    fit = screwmimic_style_fit(d.stamps_ns, pts, vis, variant="fair", front_end="ransac")
+    assert_exact(gt, fit.estimate)
+    with pytest.raises(ValueError, match="front_end"):
+        screwmimic_style(d.stamps_ns, pts, vis, front_end="icp")  # type: ignore[arg-type]

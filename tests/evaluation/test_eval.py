@@ -36,6 +36,41 @@ def test_eval_writes_table_csv_and_plot(procs: Processes, tmp_path: Path) -> Non
     assert "convergence.png" in result.stdout  # listed among the files written
 
 
+def test_eval_household_conditions_writes_named_files(procs: Processes, tmp_path: Path) -> None:
+    out = tmp_path / "eval"
+    result = procs.run("eval", "--split", "household", "--partition", "tuning", "--condition",
+                       "plain,idle_same", "--methods", "ours_no_unc_gates,ours", "--jobs", "2",
+                       "--out", str(out), timeout=900)
+    assert result.returncode == 0, result.stdout + result.stderr
+    progress = [line for line in result.stdout.splitlines() if line.startswith("[")]
+    assert len(progress) == 2 * 14  # 7 objects by participants 4 and 5, two conditions
+    assert sum(" idle_same: " in line for line in progress) == 14
+    table = (out / "table_household_conditions.md").read_text()
+    for text in ("## household split, cut variant", "condition idle_same", "still holds rigid",
+                 "no articulated verdict", "time to the right type", "90 % interval covers",
+                 "axis direction", "Conditions vs. plain", "cabinet door", "hold handle"):
+        assert text in table, text
+    with open(out / "results_household_conditions.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert len(rows) == 2 * 14 * 2
+    assert {r["condition"] for r in rows} == {"plain", "idle_same"}
+    assert {r["split"] for r in rows} == {"household"}
+    for name in ("tangent_error_household.png", "tangent_error_household_idle_same.png",
+                 "convergence_household.png"):
+        assert (out / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_eval_refuses_bad_choices_in_one_line(procs: Processes, tmp_path: Path) -> None:
+    for args, says in ((("--variant", "cut,long"), "unknown variant 'long'"),
+                       (("--methods", "ours,magic"), "unknown method 'magic'"),
+                       (("--variant", "sequence", "--condition", "dropout"),
+                        "no demonstrations to run")):
+        result = procs.run("eval", *args, "--out", str(tmp_path / "x"), timeout=120)
+        assert result.returncode == 2, result.stdout + result.stderr
+        assert says in result.stderr and "Traceback" not in result.stderr
+    assert not (tmp_path / "x").exists()
+
+
 def test_tune_writes_a_loadable_config(procs: Processes, tmp_path: Path) -> None:
     out = tmp_path / "tuned.toml"
     result = procs.run("tune", "--trials", "2", "--jobs", "2", "--out", str(out), timeout=900)

@@ -59,9 +59,9 @@ def ran() -> tuple[list[Row], list[History]]:
     rows: list[Row] = []
     histories: list[History] = []
     for obj in ("slider", "window_lock"):
-        r, h = run_demo(obj, 3, 0, settings, METHODS)
-        rows += r
-        histories += h
+        result = run_demo(obj, 3, 0, settings, METHODS)
+        rows += result.rows
+        histories += result.histories
     return rows, histories
 
 
@@ -69,8 +69,8 @@ def test_histories_follow_the_pipeline_frame_by_frame(ran: tuple[list[Row], list
                                                       ) -> None:
     rows, histories = ran
     assert sorted((h.object, h.method) for h in histories) == [
-        ("slider", "ours"), ("slider", "ours_no_unc"), ("window_lock", "ours"),
-        ("window_lock", "ours_no_unc")]
+        (o, m) for o in ("slider", "window_lock")
+        for m in ("ours", "ours_no_unc", "ours_no_unc_gates")]
     for h in histories:
         assert h.t_s[0] == 0.0 and np.all(np.diff(h.t_s) > 0)
         assert h.t_s.shape == h.tangent_error_deg.shape == h.p_true.shape
@@ -127,13 +127,14 @@ def test_convergence_figure_has_a_panel_per_object_and_only_our_methods(
     assert fig.axes[1].get_ylabel() == "P(true type)"
     assert fig.axes[1].get_xlabel().startswith("time since the start")
     legend = _legend_texts(fig)
-    assert legend[:2] == [LABELS["ours_no_unc"], LABELS["ours"]]
-    assert not any(LABELS[m] in legend for m in ("regal", "screwmimic_fair"))
+    assert legend[:3] == [LABELS["ours_no_unc"], LABELS["ours_no_unc_gates"], LABELS["ours"]]
+    assert not any(LABELS[m] in legend for m in ("regal", "screwmimic_fair",
+                                                 "screwmimic_robust"))
     assert "interquartile range" not in legend  # one demonstration per object: no band
     caption = _texts(fig).replace("\n", " ")
     assert "Only our methods are shown" in caption and "n = 1" in caption
-    # 2 methods x (error, probability) lines in each panel pair, plus the 10 deg line
-    assert len(titled[0].lines) == 2 + 1
+    # a line per method in each panel, plus the 10 deg line
+    assert len(titled[0].lines) == 3 + 1
     path = figures.save(fig, tmp_path / "convergence.png")
     assert path.stat().st_size > 20_000
 
