@@ -358,6 +358,8 @@ def test_a_killed_process_continues_from_its_state_file(procs: Processes, router
     for b in bodies[:60]:
         client_bus.put(KEYS.hand_body, b.to_msgpack())
     wait_until(lambda: _model(client_bus).updates == 60, 20, what="60 updates")
+    # the writer thread saves off the update path: kill only once the file holds all 60
+    wait_until(lambda: _saved_updates(state) == 60, 20, what="60 updates in the state file")
 
     # kill -9 mid-demonstration; the restarted service continues from the snapshot
     _kill(kin, client_bus)
@@ -496,6 +498,11 @@ def test_a_state_file_of_an_older_version_is_ignored(tmp_path: Path,
     assert node.model().updates == 0
 
 
+def _saved_updates(path: Path) -> int | None:
+    doc = StateFile(path, STATE_VERSION).load() if path.exists() else None
+    return None if doc is None else int(doc["estimator"]["updates"])
+
+
 def test_a_far_stamp_is_not_carried_across_a_restart(procs: Processes, router: str,
                                                      client_bus: Bus, tmp_path: Path) -> None:
     """The process refuses a body stamped 2^63 - 1; killed and restarted from its state file, it
@@ -509,6 +516,8 @@ def test_a_far_stamp_is_not_carried_across_a_restart(procs: Processes, router: s
     wait_until(lambda: _stats(client_bus)["received"] == 31, 20, what="31 bodies received")
     assert _stats(client_bus)["rejected"] == {"far_future": 1}
     wait_until(lambda: _model(client_bus).updates == 30, 20, what="30 updates")
+    # the writer thread saves off the update path: kill only once the file holds all 30
+    wait_until(lambda: _saved_updates(state) == 30, 20, what="30 updates in the state file")
 
     _kill(kin, client_bus)
     _start(procs, router, state, client_bus)
