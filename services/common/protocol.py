@@ -770,7 +770,10 @@ class KinematicModel(Message):
 
 @dataclass(frozen=True, kw_only=True, eq=False)
 class RobotState(Message):
-    """Robot state (``handkse/{rig}/robot/state``); ``wrench`` = force then torque, base frame."""
+    """Robot state (``handkse/{rig}/robot/state``); ``wrench`` = force then torque, base frame.
+
+    ``T_base_target`` (optional): the end-effector pose commanded at this tick while articulating.
+    """
 
     SCHEMA: ClassVar[str] = "handkse.RobotState/1"
     q: NDArray[np.float64]
@@ -779,19 +782,27 @@ class RobotState(Message):
     wrench: NDArray[np.float64]
     mode: str
     backend: str
+    T_base_target: NDArray[np.float64] | None = None
 
     def _fields(self) -> dict[str, Any]:
-        return {"q": self.q, "dq": self.dq, "T_base_ee": self.T_base_ee, "wrench": self.wrench,
-                "mode": self.mode, "backend": self.backend}
+        out = {"q": self.q, "dq": self.dq, "T_base_ee": self.T_base_ee, "wrench": self.wrench,
+               "mode": self.mode, "backend": self.backend}
+        if self.T_base_target is not None:
+            out["T_base_target"] = self.T_base_target
+        return out
 
     @classmethod
     def _parse(cls, f: _Fields, envelope: dict[str, Any]) -> RobotState:
         T = f.req_array("T_base_ee", "<f8", (4, 4))
         _require_pose(T, f"{f.path}.T_base_ee")
+        target = f.array("T_base_target", "<f8", (4, 4), optional=True)
+        if target is not None:
+            _require_pose(target, f"{f.path}.T_base_target")
         return cls(**envelope, q=f.req_array("q", "<f8", (7,)),
                    dq=f.req_array("dq", "<f8", (7,)), T_base_ee=T,
                    wrench=f.req_array("wrench", "<f8", (6,)),
-                   mode=f.str("mode", ROBOT_MODES), backend=f.str("backend"))
+                   mode=f.str("mode", ROBOT_MODES), backend=f.str("backend"),
+                   T_base_target=target)
 
 
 @dataclass(frozen=True, kw_only=True, eq=False)

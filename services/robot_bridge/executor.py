@@ -49,7 +49,8 @@ from services.robot_bridge.trajectory import (
 log = logging.getLogger(__name__)
 
 Array = NDArray[np.float64]
-Tick = Callable[[BackendState, bool], None]
+# on_tick(state, articulating, commanded pose T_base_target or None while not moving)
+Tick = Callable[[BackendState, bool, Array | None], None]
 # Called with the checked plan just before it would start (or a dry run answer): a refusal
 # stops it (the service's check of the caller's deadline).
 StartGate = Callable[[ArticulationPlan], Refusal | None]
@@ -222,7 +223,7 @@ def execute(backend: RobotBackend, plan: ArticulationPlan, config: RobotBridgeCo
             dqs.append(s.dq)
             tcp.append(s.T_base_ee[:3, 3])
         if on_tick is not None:
-            on_tick(s, moving)
+            on_tick(s, moving, T_d if moving else None)
         i += 1
     duration = s.t_s - t0
     backend.stop()

@@ -111,6 +111,7 @@ class RobotBridgeNode:
         self.bridge = Bridge(backend, config)
         self.fetch_model = fetch_model
         self.clock = clock
+        self._target: np.ndarray | None = None  # the pose commanded at the last tick
         self.mode = "idle"
         self._latest: KinematicModel | None = None
         self._latest_at = 0.0                       # clock() when _latest arrived
@@ -311,9 +312,12 @@ class RobotBridgeNode:
         log.warning("%s; using the last model received %.1f s ago", why, age)
         return latest
 
-    def _on_tick(self, state: BackendState, moving: bool) -> None:
-        """Per control tick: publish at the state rate; pace a simulation to real time."""
+    def _on_tick(self, state: BackendState, moving: bool,
+                 target: np.ndarray | None = None) -> None:
+        """Per control tick: publish at the state rate (with the commanded pose ``target``);
+        pace a simulation to real time."""
         self.mode = "articulating"
+        self._target = target
         self._publish_state(state)
         factor = self.config.sim_realtime_factor
         if self.backend.name != "mujoco" or factor <= 0.0:
@@ -337,7 +341,9 @@ class RobotBridgeNode:
                          dq=np.asarray(state.dq, "<f8"),
                          T_base_ee=_rigid(state.T_base_ee),
                          wrench=np.asarray(state.wrench, "<f8"), mode=self.mode,
-                         backend=self.backend.name)
+                         backend=self.backend.name,
+                         T_base_target=(_rigid(self._target) if self.mode == "articulating"
+                                        and self._target is not None else None))
         self.service.publish(keys.robot_state, msg)
         # --- robot/body: the grasp pose as a HandBody in the camera frame, while articulating
         # (docs/protocol.md#robotbody); services.robot_bridge.refinement.robot_body.

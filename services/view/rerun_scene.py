@@ -17,7 +17,8 @@ y down, z forward):
 - ``world/model/axis`` (line, revolute) or ``world/model/arrow`` (prismatic),
   ``world/model/cone`` the axis uncertainty, ``world/model/sweep`` the demonstrated arc or
   stroke, ``world/model/point_covariance`` where the revolute axis passes near the hand;
-- ``robot/ee`` the end-effector pose and ``robot/trail``, in the robot's base frame (a space of
+- ``robot/ee`` the end-effector pose, ``robot/target`` the commanded pose and ``robot/trail``,
+  in the robot's base frame (a space of
   its own: the camera-to-base calibration is not on the bus);
 - ``plots/type_probability/{rigid,prismatic,revolute,disconnected}``, ``plots/joint/q``,
   ``plots/robot/force_n`` and ``plots/robot/force_limit_n`` time series; ``log/model`` and
@@ -61,6 +62,7 @@ SWEEP = "world/model/sweep"
 POINT_COVARIANCE = "world/model/point_covariance"
 ROBOT_EE = "robot/ee"
 ROBOT_TRAIL = "robot/trail"
+ROBOT_TARGET = "robot/target"
 PROBABILITY = "plots/type_probability"
 JOINT_Q = "plots/joint/q"
 FORCE = "plots/robot/force_n"
@@ -308,6 +310,10 @@ class RerunScene:
         if len(self._robot_trail) >= 2:
             self.rec.log(ROBOT_TRAIL, rr.LineStrips3D([np.array(self._robot_trail)],
                                                       colors=[[120, 200, 255]], radii=0.001))
+        if msg.T_base_target is not None:
+            tt, qt = geo.pose_translation_quat(msg.T_base_target)
+            self.rec.log(ROBOT_TARGET, rr.Transform3D(translation=tt, quaternion=qt),
+                         rr.TransformAxes3D(axis_length=0.05))
         self.rec.log(FORCE, rr.Scalars(float(np.linalg.norm(msg.wrench[:3]))))
         self.rec.log(FORCE_LIMIT, rr.Scalars(self.options.force_limit_n))
         if msg.mode != self._robot_mode:

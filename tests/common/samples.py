@@ -71,7 +71,8 @@ def robot_state(seed: int = 0) -> p.RobotState:
     rng = _rng(seed)
     return p.RobotState(q=rng.normal(size=7), dq=rng.normal(size=7),
                         T_base_ee=se3_exp(rng.normal(size=6)), wrench=rng.normal(size=6),
-                        mode="articulating", backend="mujoco")
+                        mode="articulating", backend="mujoco",
+                        T_base_target=se3_exp(rng.normal(size=6)))
 
 
 def all_messages(seed: int = 0) -> list[p.Message]:

@@ -60,6 +60,9 @@ def test_robot_pose_force_and_limit(tmp_path: Path) -> None:
     entities = read_entities(tmp_path / "r.rrd")
     translation = at(entities[f"/{scene.ROBOT_EE}"], 77, "Transform3D:translation")[0]
     np.testing.assert_allclose(translation, state.T_base_ee[:3, 3], atol=1e-6)
+    assert state.T_base_target is not None
+    target = at(entities[f"/{scene.ROBOT_TARGET}"], 77, "Transform3D:translation")[0]
+    np.testing.assert_allclose(target, state.T_base_target[:3, 3], atol=1e-6)
     force = at(entities[f"/{scene.FORCE}"], 77, "Scalars:scalars")[0]
     assert force == pytest.approx(float(np.linalg.norm(state.wrench[:3])))
     assert at(entities[f"/{scene.FORCE_LIMIT}"], 77, "Scalars:scalars") == [55.0]
