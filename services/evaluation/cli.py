@@ -44,7 +44,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--split", default="evaluation", choices=("evaluation", "tuning", "all"))
     p.add_argument("--seeds", type=int, default=1, help="demonstrations per (object, participant)")
     p.add_argument("--methods", help="comma-separated subset of regal, screwmimic_faithful, "
-                   "screwmimic_fair, ours_no_unc, ours (default: all)")
+                   "screwmimic_fair, ours_no_unc, ours (default: all), and "
+                   "ours_no_kinematic_prior (only when named)")
     p.add_argument("--jobs", type=int, help="worker processes (default: all cores)")
     p.add_argument("--out", help="output folder (default eval/<date>)")
     p.add_argument("--publish", action="store_true", help="also copy to bench/results/eval/")

@@ -25,7 +25,7 @@ if TYPE_CHECKING:
 
 PRISMATIC_FIRST = ("prismatic", "revolute")
 COLORS = {"regal": "#d97fb0", "screwmimic_faithful": "#3a9fa8", "screwmimic_fair": "#8fd3d8",
-          "ours_no_unc": "#e08a2c", "ours": "#2b59c3"}
+          "ours_no_unc": "#e08a2c", "ours_no_kinematic_prior": "#7aa6e0", "ours": "#2b59c3"}
 DPI = 150
 CAPTION_CHARS_PER_INCH = 15.5  # at the caption's 8.5 pt
 

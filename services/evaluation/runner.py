@@ -3,7 +3,9 @@
 Methods, all fed the same synthetic landmark stream:
 ``regal`` (Regal-style single-landmark screw fit), ``screwmimic_faithful`` and
 ``screwmimic_fair`` (ScrewMimic-style fits to per-frame Kabsch hand poses), ``ours_no_unc``
-(our pipeline with the tracker's uncertainty models and outlier rejection off) and ``ours``.
+(our pipeline with the tracker's uncertainty models and outlier rejection off) and ``ours``;
+on request also ``ours_no_kinematic_prior`` (ours without the tracker's kinematic motion model,
+``TrackerConfig.use_kinematic_prior``).
 Our two methods also give a per-frame :class:`History` (tangent error and the true type's
 probability over time) for the convergence plot.
 """
@@ -22,7 +24,12 @@ from services.common.progress import Progress
 from services.common.protocol import KinematicModel
 from services.evaluation import baselines, metrics
 from services.evaluation.metrics import JointEstimate
-from services.evaluation.pipeline import ablation_config, joint_estimate, run_pipeline
+from services.evaluation.pipeline import (
+    ablation_config,
+    joint_estimate,
+    no_kinematic_prior_config,
+    run_pipeline,
+)
 from services.kinematics.config import KinematicsConfig
 from services.synthetic.generator import (
     EVALUATION_SPLIT,
@@ -33,11 +40,13 @@ from services.synthetic.generator import (
 from services.tracker.config import TrackerConfig
 
 METHODS = ("regal", "screwmimic_faithful", "screwmimic_fair", "ours_no_unc", "ours")
+OPTIONAL_METHODS = ("ours_no_kinematic_prior",)  # run only when asked for (--methods)
 LABELS = {
     "regal": "Regal et al. (style)",
     "screwmimic_faithful": "ScrewMimic (faithful)",
     "screwmimic_fair": "ScrewMimic (fair)",
     "ours_no_unc": "Ours w/o unc. models",
+    "ours_no_kinematic_prior": "Ours w/o kin. prior",
     "ours": "Ours",
 }
 SPLITS = {"evaluation": EVALUATION_SPLIT, "tuning": TUNING_SPLIT,
@@ -163,8 +172,11 @@ def run_demo(object_name: str, participant: int, seed: int, settings: Settings,
     rows: list[Row] = []
     histories: list[History] = []
     for method in methods:
-        if method in ("ours", "ours_no_unc"):
-            tracker = settings.tracker if method == "ours" else ablation_config(settings.tracker)
+        if method in ("ours", "ours_no_unc", "ours_no_kinematic_prior"):
+            tracker = {"ours": settings.tracker,
+                       "ours_no_unc": ablation_config(settings.tracker),
+                       "ours_no_kinematic_prior": no_kinematic_prior_config(settings.tracker)
+                       }[method]
             row, history = _ours(demo, method, tracker, settings.kinematics)
             rows.append(row)
             histories.append(history)
@@ -179,7 +191,8 @@ def run_demo(object_name: str, participant: int, seed: int, settings: Settings,
                                lambda: baselines.screwmimic_style(*_stream(demo),
                                                                   variant="fair")))
         else:
-            raise ValueError(f"unknown method {method!r}; known: {list(METHODS)}")
+            raise ValueError(f"unknown method {method!r}; known: "
+                             f"{list(METHODS + OPTIONAL_METHODS)}")
     return rows, histories
 
 
