@@ -629,6 +629,9 @@ class HandBody(Message):
     """Hand rigid-body estimate (``handkse/{rig}/hand/body``).
 
     ``covariance`` is 12x12 over [pose left-perturbation (v, w), twist (v, w)], in ``frame_id``.
+    ``body_epoch`` (int >= 0; 0 when absent on the wire) names the hand body frame ``pose`` is
+    in: it changes whenever the tracker defines the body frame anew without re-acquiring the
+    old one, and a consumer must never compare poses of two epochs (docs/protocol.md).
     """
 
     SCHEMA: ClassVar[str] = "handkse.HandBody/1"
@@ -638,13 +641,15 @@ class HandBody(Message):
     covariance: NDArray[np.float64]
     motion_model: str
     landmarks: LandmarkStates
+    body_epoch: int = 0
 
     def _fields(self) -> dict[str, Any]:
         lm = self.landmarks
         return {"initialized": self.initialized, "pose": self.pose, "twist": self.twist,
                 "covariance": self.covariance, "motion_model": self.motion_model,
                 "landmarks": {"points": lm.points, "variance": lm.variance,
-                              "status": lm.status}}
+                              "status": lm.status},
+                "body_epoch": self.body_epoch}
 
     @classmethod
     def _parse(cls, f: _Fields, envelope: dict[str, Any]) -> HandBody:
@@ -660,9 +665,11 @@ class HandBody(Message):
             points=lf.req_array("points", "<f4", (NUM_LANDMARKS, 3), finite=False),
             variance=lf.req_array("variance", "<f4", (NUM_LANDMARKS,), finite=False),
             status=status)
+        body_epoch = 0 if f._get("body_epoch", optional=True) is None else f.int("body_epoch", 0)
         return cls(**envelope, initialized=f.bool("initialized"), pose=pose,
                    twist=f.req_array("twist", "<f8", (6,)), covariance=cov,
-                   motion_model=f.str("motion_model", MOTION_MODELS), landmarks=landmarks)
+                   motion_model=f.str("motion_model", MOTION_MODELS), landmarks=landmarks,
+                   body_epoch=body_epoch)
 
 
 # --- KinematicModel ---

@@ -21,7 +21,7 @@ VARIANT_CHOICES = ("cut", "whole", "sequence", "regrasp")
 CONDITION_CHOICES = ("plain", "idle_opposite", "idle_same", "idle_flipping", "dropout",
                      "regrasp_gap")
 METHOD_CHOICES = ("regal", "screwmimic_faithful", "screwmimic_fair", "screwmimic_robust",
-                  "ours_no_unc", "ours_no_unc_gates", "ours")
+                  "ours_no_unc", "ours_no_unc_gates", "ours", "ours_no_kinematic_prior")
 
 
 def _names(text: str | None, default: tuple[str, ...]) -> tuple[str, ...]:

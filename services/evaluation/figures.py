@@ -28,7 +28,8 @@ JOINT_TYPE_ORDER = ("prismatic", "revolute", "rigid")
 OBJECT_NAMES = tuple(o for objects in OBJECTS_BY_SPLIT.values() for o in objects)
 COLORS = {"regal": "#d97fb0", "screwmimic_faithful": "#3a9fa8", "screwmimic_fair": "#8fd3d8",
           "screwmimic_robust": "#1f6f75", "ours_no_unc": "#e08a2c",
-          "ours_no_unc_gates": "#f2c14e", "ours": "#2b59c3"}
+          "ours_no_unc_gates": "#f2c14e", "ours_no_kinematic_prior": "#7aa6e0",
+          "ours": "#2b59c3"}
 DPI = 150
 CAPTION_CHARS_PER_INCH = 15.5  # at the caption's 8.5 pt
 

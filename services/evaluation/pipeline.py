@@ -50,10 +50,18 @@ def joint_estimate(model: KinematicModel) -> JointEstimate:
 
 def run_pipeline(demo: Demonstration, tracker_config: TrackerConfig | None = None,
                  kinematics_config: KinematicsConfig | None = None) -> PipelineResult:
-    """Feed every frame of ``demo`` through the tracker and the kinematics estimator."""
+    """Feed every frame of ``demo`` through the tracker and the kinematics estimator.
+
+    The tracker gets every hand the detector delivers in a frame (``demo.detections``, an idle
+    second hand included) and picks the manipulating one itself; bodies it produces late
+    (``StepResult.replayed``) are absorbed in order before the frame's own. A hand body of a new body epoch
+    (``HandBodyEstimate.body_epoch``: the tracker defined a new body frame) starts a new
+    estimate: poses of two body frames are never mixed.
+    """
     tracker = HandTracker(tracker_config or TrackerConfig())
     estimator = KinematicEstimator(kinematics_config or KinematicsConfig())
     model: KinematicModel | None = None
+    epoch: int | None = None
     history: list[KinematicModel | None] = []
     seconds = np.zeros(len(demo.stamps_ns))
 
@@ -62,12 +70,19 @@ def run_pipeline(demo: Demonstration, tracker_config: TrackerConfig | None = Non
 
     for i, stamp in enumerate(demo.stamps_ns):
         t0 = time.perf_counter()
-        hand = HandObservation(handedness=demo.handedness, score=float(demo.score[i]),
-                               points=np.asarray(demo.points[i], float),
-                               visibility=np.asarray(demo.visibility[i], float))
-        body = tracker.step(int(stamp), [hand], kinematic_prior=prior).estimate
-        if body is not None and body.initialized:
-            result = estimator.update(int(stamp), body.pose, body.covariance[:6, :6])
+        hands = [HandObservation(handedness=d.handedness, score=d.score,
+                                 points=np.asarray(d.points, float),
+                                 visibility=np.asarray(d.visibility, float))
+                 for d in demo.detections(i)]
+        step = tracker.step(int(stamp), hands, kinematic_prior=prior)
+        for body in (*step.replayed, step.estimate):
+            if body is None or not body.initialized:
+                continue
+            if epoch is not None and body.body_epoch != epoch:
+                estimator.reset()
+                model = None
+            epoch = body.body_epoch
+            result = estimator.update(int(body.stamp_ns), body.pose, body.covariance[:6, :6])
             if result.model is not None:
                 model = result.model
         seconds[i] = time.perf_counter() - t0
@@ -79,6 +94,11 @@ def run_pipeline(demo: Demonstration, tracker_config: TrackerConfig | None = Non
 def ablation_config(config: TrackerConfig | None = None) -> TrackerConfig:
     """The "without uncertainty models" variant of a tracker config."""
     return replace(config or TrackerConfig(), use_uncertainty_models=False)
+
+
+def no_kinematic_prior_config(config: TrackerConfig | None = None) -> TrackerConfig:
+    """The "without the kinematic motion model" variant of a tracker config."""
+    return replace(config or TrackerConfig(), use_kinematic_prior=False)
 
 
 def demo_tangent_error_deg(model: KinematicModel, demo: Demonstration) -> float:

@@ -41,7 +41,12 @@ from services.common.protocol import KinematicModel
 from services.evaluation import baselines, metrics, phase_metrics
 from services.evaluation.metrics import JointEstimate
 from services.evaluation.phase_metrics import PhaseScore
-from services.evaluation.pipeline import ablation_config, joint_estimate, run_pipeline
+from services.evaluation.pipeline import (
+    ablation_config,
+    joint_estimate,
+    no_kinematic_prior_config,
+    run_pipeline,
+)
 from services.kinematics.config import KinematicsConfig
 from services.synthetic import splits
 from services.synthetic.demonstration import Demonstration, cut_to_segment
@@ -62,6 +67,7 @@ OURS: dict[str, Callable[[TrackerConfig], TrackerConfig]] = {
     "ours_no_unc": ablation_config,
     "ours_no_unc_gates": gated_ablation_config,
     "ours": lambda config: config,
+    "ours_no_kinematic_prior": no_kinematic_prior_config,
 }
 BASELINES: dict[str, Callable[[Demonstration], JointEstimate]] = {
     "regal": lambda d: baselines.regal_style(d.stamps_ns, d.points, d.visibility),
@@ -81,6 +87,7 @@ LABELS = {
     "screwmimic_robust": "ScrewMimic (fair, RANSAC poses)",
     "ours_no_unc": "Ours w/o unc. models",
     "ours_no_unc_gates": "Ours w/o unc. models, gates on",
+    "ours_no_kinematic_prior": "Ours w/o kin. prior",
     "ours": "Ours",
 }
 CONVERGED_DEG = 10.0

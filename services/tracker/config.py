@@ -18,11 +18,36 @@ physically meaningful distance (numbers in Table-I units, ``u``):
   so measurements that jump by more than ~0.09 sqrt(u) from the landmark prediction are outliers;
 - loss threshold ``trace(P_lm) >= 0.3``: the steady-state posterior trace is 0.12 and one frame
   of process noise adds 0.39, so a landmark whose correction is skipped once (missing or outlier)
-  is dropped and re-initialised from its next measurement; ``3 * P0`` = 0.27 stays just below it;
-- body gate ``M_rb = 0.25``: S ~ 0.8 u (dominated by ``Q_rb``) against the predicted landmark;
-  the leave-one-out check at the same threshold (``body.py``) carries only the uncertainty left
-  once the other landmarks are seen, so it acts at ~1-2 landmark sigmas of the filtered landmark;
+  is dropped; it restarts at its next measurement, gated against the lost filter's prediction
+  when that filter was confirmed (``lm_confirm_corrections``; ``landmarks.py``); ``3 * P0`` =
+  0.27 stays just below the threshold;
+- body gate ``M_rb = 0.25``: S ~ 0.8 u (dominated by ``Q_rb``) against the predicted landmark,
+  and the same threshold on the leave-one-out residual (``body.py``);
 - the landmark KF gain is ~0.78, so the filtered landmark lags the measurement by ~0.3 frame.
+
+Gates in sigma
+--------------
+Every gate compares a Mahalanobis distance ``d = sqrt(y' S^-1 y)`` of a 3-D residual ``y`` with
+its own covariance ``S``; "N sigma" below means ``d >= N`` rejects. Table I's thresholds are in
+Table-I units; in the filters' physical units (:meth:`TrackerConfig.internal`, the variance unit
+1e-3 m^2) each is divided by ``sqrt(1e-3)`` (:meth:`TrackerConfig.gate_sigmas` computes them):
+
+- landmark gate ``M_lm``: 6.0 sigma of ``S = P_lm + R_lm`` (~9 cm at 30 Hz), and the same on a
+  confirmed landmark's restart, against the lost filter's growing prediction;
+- body prior gate ``M_rb``: 7.9 sigma of ``S = H P_p H' + R_rb`` (``P_p`` with ``Q_rb``: ~23 cm);
+- body leave-one-out gate ``M_rb``: 7.9 sigma of the leave-one-out residual's covariance
+  ``R_rb - H Sigma H'`` (~6-10 cm; ``R_rb`` is ~(9 mm)^2 per axis);
+- RANSAC inliers ``ransac_inlier_mahalanobis``: 7.9 sigma of ``(r_start + r_end) I3`` (~10 cm);
+- body-model refinement (``template.py``): 3.4 sigma of ``R_rb`` (the 99 % point of chi-square
+  with 3 degrees of freedom, ~3 cm; the long-term model takes no borderline landmark);
+- hand identity (``hands.py``): ``hand_association_gate_sigma`` = 4 sigma of the hand centre's
+  predicted spread ``sqrt(hand_centre_std_m^2 + (hand_speed_std_mps dt)^2)`` (~18 cm at 30 Hz).
+
+Table I's gates are wide (a Gaussian innovation exceeds 6 sigma once in ~10^7 frames): they only
+reject gross outliers; the uncertainty models, not the gates, weigh the rest. They are kept at
+the paper's values: on the tuning split a 4-sigma landmark gate (``mahalanobis_lm`` 0.126) gave
+4.7 deg instead of 5.2 deg mean tangent error, and the body gates at 4-5 sigma 5.4-5.7 deg
+(docs/estimation.md#tuning-record); ``handkse tune`` optimises both.
 
 The variance unit (``variance_unit_m2``)
 -----------------------------------------
@@ -70,7 +95,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, fields, replace
 
-HAND_SELECTIONS = ("best", "left", "right")
+HAND_SELECTIONS = ("manipulating", "left", "right")
 _TABLE_ONE_COVARIANCES = frozenset({
     "p0_lm_position_m2", "p0_lm_velocity_m2ps2", "q_lm_position_m2", "q_lm_velocity_m2ps2",
     "r_lm_m2", "lm_loss_trace_m2", "p0_rb_position_m2", "p0_rb_rotation_rad2",
@@ -94,7 +119,11 @@ class TrackerConfig:
     r_lm_m2: float = 0.05  # detector noise per axis, in the camera frame
     lm_loss_trace_m2: float = 0.3  # landmark dropped once trace(P_position) >= this
     visibility_threshold: float = 0.006  # landmarks with B_vis below this are missing
-    mahalanobis_lm: float = 0.19  # outlier if sqrt(y' S^-1 y) >= this (landmark level)
+    # Landmark gate (Table-I units; 6.0 sigma in physical units): outlier if sqrt(y' S^-1 y) >= this.
+    mahalanobis_lm: float = 0.19
+    # A lost landmark whose filter had this many corrections restarts only within M_lm of the
+    # lost filter's prediction (landmarks.py, "restart gate"); 0 gates every restart.
+    lm_confirm_corrections: int = 3
 
     # Hand-body EKF on SE(3), error state [pose (v, w), twist (v, w)].
     p0_rb_position_m2: float = 0.05
@@ -105,7 +134,9 @@ class TrackerConfig:
     q_rb_rotation_rad2: float = 3.0
     q_rb_linear_velocity_m2ps2: float = 2.4
     q_rb_angular_velocity_rad2ps2: float = 4.8
-    mahalanobis_rb: float = 0.25  # outlier if sqrt(y_i' S_i^-1 y_i) >= this (body level)
+    # Body gates (Table-I units; 7.9 sigma in physical units): outlier if sqrt(y_i' S_i^-1 y_i)
+    # >= this, against the predicted landmark and leave-one-out (body.py).
+    mahalanobis_rb: float = 0.25
 
     # Feature saliency factors s_k: R_rb = s_k * P_lm (position block). The wrist is excluded.
     saliency_thumb: float = 1.5  # all four thumb landmarks (CMC, MCP, IP, tip)
@@ -117,7 +148,8 @@ class TrackerConfig:
     # Probabilistic initialisation: weighted RANSAC over a window of frames.
     init_window_frames: int = 5  # frames of landmark motion the initialisation looks at
     ransac_iterations: int = 100
-    ransac_inlier_mahalanobis: float = 0.25  # weighted residual threshold (same scale as M_rb)
+    # Inlier threshold of the weighted RANSAC (Table-I units, 7.9 sigma in physical units).
+    ransac_inlier_mahalanobis: float = 0.25
     ransac_refinements: int = 2  # weighted-Kabsch refits on the inlier set
     min_inliers: int = 6  # landmarks needed to initialise and to correct the body
 
@@ -162,10 +194,40 @@ class TrackerConfig:
     # gates from the noise models). No effect with the uncertainty models on.
     ablation_gates: bool = False
 
-    # Which detected hand to track: "left", "right", or "best" (the highest-scoring hand when
-    # the initialisation window starts; that handedness is kept, also across a re-initialisation,
-    # until the hand is absent while no body is tracked).
-    hand_selection: str = "best"
+    # Kinematic motion model: predict the hand with the kinematic level's model when one is
+    # given (False: static and constant velocity only; the evaluation's "ours w/o kin. prior").
+    use_kinematic_prior: bool = True
+
+    # Which detected hand to track: "manipulating" (hand identities kept by spatial continuity,
+    # never by label or score; of two hands in view, the one that moved last, with hysteresis;
+    # hands.py and docs/estimation.md#the-manipulating-hand), or "left" / "right" (only the hands
+    # the detector labels so; for a detector whose labels can be trusted).
+    hand_selection: str = "manipulating"
+    # Identity by continuity: a detection whose centre (median landmark) is beyond this many
+    # sigma of an identity's last centre, sigma = sqrt(hand_centre_std_m^2 + (hand_speed_std_mps
+    # dt)^2) with dt since it was last seen, is not that hand.
+    hand_association_gate_sigma: float = 4.0
+    hand_centre_std_m: float = 0.03  # centre noise (occlusions move the median landmark)
+    hand_speed_std_mps: float = 1.0  # hand speed (the generator's fastest demonstrations)
+    hand_duplicate_distance_m: float = 0.03  # two detections this close are one hand
+    hand_pair_memory_s: float = 2.0  # two hands count as in view this long after both were
+    # Motion: a hand moved when the rigid motion from its anchor moves its landmarks by this RMS
+    # for hand_motion_frames frames in a row (a resting hand's detections wander by up to 1.5 cm
+    # over three frames on the tuning split, 8 cm in single frames); idle after
+    # hand_idle_after_s without moving.
+    hand_motion_threshold_m: float = 0.025
+    hand_motion_frames: int = 3
+    hand_idle_after_s: float = 1.0
+    # Hysteresis: the body moves to the other hand only when the tracked one has not moved for
+    # hand_switch_idle_s (a slow hand moves its landmarks 2.5 cm only every second or so) and the
+    # other moved hand_switch_moves times since the tracked one last moved.
+    hand_switch_idle_s: float = 2.0
+    hand_switch_moves: int = 3
+    # Two hands in view and neither moving: hold the frames back this long (they are estimated
+    # late for the hand chosen), then take the better scored. Longer than the rest before a
+    # manipulation usually lasts (about 1 s in the synthetic demonstrations): a wrong choice
+    # costs a new body frame when the other hand then manipulates.
+    hand_choice_wait_s: float = 4.0
 
     seed: int = 0  # seed of the tracker's RANSAC random generator
 
@@ -195,6 +257,15 @@ class TrackerConfig:
             "saliency_tip": self.saliency_tip,
             "ransac_inlier_mahalanobis": self.ransac_inlier_mahalanobis,
             "reinit_after_s": self.reinit_after_s,
+            "hand_association_gate_sigma": self.hand_association_gate_sigma,
+            "hand_centre_std_m": self.hand_centre_std_m,
+            "hand_speed_std_mps": self.hand_speed_std_mps,
+            "hand_duplicate_distance_m": self.hand_duplicate_distance_m,
+            "hand_pair_memory_s": self.hand_pair_memory_s,
+            "hand_motion_threshold_m": self.hand_motion_threshold_m,
+            "hand_idle_after_s": self.hand_idle_after_s,
+            "hand_switch_idle_s": self.hand_switch_idle_s,
+            "hand_choice_wait_s": self.hand_choice_wait_s,
         }
         for name, value in positive.items():
             if not isinstance(value, (int, float)) or not value > 0.0 or value == float("inf"):
@@ -205,6 +276,8 @@ class TrackerConfig:
             raise ValueError(f"init_window_frames must be >= 1, got {self.init_window_frames}")
         if self.ransac_iterations < 1:
             raise ValueError(f"ransac_iterations must be >= 1, got {self.ransac_iterations}")
+        if self.lm_confirm_corrections < 0:
+            raise ValueError(f"lm_confirm_corrections must be >= 0, got {self.lm_confirm_corrections}")
         if self.ransac_refinements < 0:
             raise ValueError(f"ransac_refinements must be >= 0, got {self.ransac_refinements}")
         if self.min_inliers < 3:
@@ -212,6 +285,10 @@ class TrackerConfig:
         if self.hand_selection not in HAND_SELECTIONS:
             raise ValueError(f"hand_selection must be one of {HAND_SELECTIONS}, "
                              f"got {self.hand_selection!r}")
+        for name in ("hand_switch_moves", "hand_motion_frames"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ValueError(f"{name} must be an int >= 1, got {value!r}")
         if self.seed < 0:
             raise ValueError(f"seed must be >= 0, got {self.seed}")
         for name in ("variance_unit_m2", "depth_variance_factor"):
@@ -253,6 +330,13 @@ class TrackerConfig:
     def outlier_gates(self) -> bool:
         """Whether the Mahalanobis gates (landmark, body, body-model refinement) are on."""
         return self.use_uncertainty_models or self.ablation_gates
+
+    def gate_sigmas(self) -> dict[str, float]:
+        """The Table-I gates in sigma of the physical innovation they test (module docstring,
+        "Gates in sigma"): each threshold of :meth:`internal`."""
+        i = self.internal()
+        return {"mahalanobis_lm": i.mahalanobis_lm, "mahalanobis_rb": i.mahalanobis_rb,
+                "ransac_inlier_mahalanobis": i.ransac_inlier_mahalanobis}
 
     def saliency_factors(self) -> tuple[float, ...]:
         """s_k per landmark in MediaPipe order (21 values); the wrist's entry is 1.0 (unused)."""

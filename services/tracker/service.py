@@ -54,7 +54,8 @@ def body_message(estimate: HandBodyEstimate, seq: int, frame_id: str | None = No
         motion_model=estimate.motion_model,
         landmarks=LandmarkStates(points=np.asarray(estimate.landmark_points, "<f4"),
                                  variance=np.asarray(estimate.landmark_variance, "<f4"),
-                                 status=np.asarray(estimate.landmark_status, "|u1")))
+                                 status=np.asarray(estimate.landmark_status, "|u1")),
+        body_epoch=int(estimate.body_epoch))
 
 
 def observations(message: HandLandmarks) -> list[HandObservation]:
@@ -116,17 +117,19 @@ class TrackerNode:
         if result.reason not in FRAME_REJECTIONS:
             self.stamps.accept(message.stamp_ns, received)
             self._label = message.frame_id
+        skipped = self.service.skipped
         if result.reason is not None and result.skipped:
-            skipped = self.service.skipped
             skipped[result.reason] = skipped.get(result.reason, 0) + 1
-        estimate = result.estimate
-        if estimate is None:
-            return
-        self._maybe_save(estimate)
+        for note in result.notes:  # handled, but worth counting (StepResult.notes)
+            skipped[note] = skipped.get(note, 0) + 1
         keys = self.service.keys
-        frame = "world" if message.frame_id == "world" else estimate.frame_id
-        self.service.publish(keys.hand_body,
-                             body_message(estimate, self.service.next_seq(keys.hand_body), frame))
+        for estimate in (*result.replayed, result.estimate):  # held-back frames first
+            if estimate is None:
+                continue
+            self._maybe_save(estimate)
+            frame = "world" if message.frame_id == "world" else estimate.frame_id
+            self.service.publish(keys.hand_body, body_message(
+                estimate, self.service.next_seq(keys.hand_body), frame))
 
     def reset(self) -> None:
         self.tracker.reset()

@@ -189,11 +189,35 @@ def test_merge_pose_keeps_blocks_and_stays_positive_definite() -> None:
     rng = np.random.default_rng(RNG_SEED)
     Pv = random_spd(rng, 12, 1.0)
     Pp = random_spd(rng, 6, 0.01)
-    P = merge_pose(Pv, Pp)
+    P, repaired = merge_pose(Pv, Pp)
+    assert not repaired
     np.testing.assert_allclose(P[:6, :6], Pp)
     np.testing.assert_allclose(P[6:, 6:], Pv[6:, 6:])
     np.testing.assert_allclose(P, P.T)
     assert np.linalg.eigvalsh(P).min() > 0.0
+
+
+def test_merge_pose_repairs_blocks_without_a_cholesky_factor() -> None:
+    """Issue 13: under a flood of frames microseconds apart merge_pose raised LinAlgError (a
+    pose block with no Cholesky factor) and a negative variance was published. Now the inputs
+    are repaired, the result is positive definite, and the repair is reported."""
+    rng = np.random.default_rng(RNG_SEED)
+    Pv = random_spd(rng, 12, 1.0)
+    Pp = random_spd(rng, 6, 0.01)
+    w, V = np.linalg.eigh(Pp)
+    w[0] = -1e-9 * w[-1]  # round-off made the pose block indefinite
+    Pp_bad = (V * w) @ V.T
+    Pp_bad = 0.5 * (Pp_bad + Pp_bad.T)
+    with pytest.raises(np.linalg.LinAlgError):
+        np.linalg.cholesky(Pp_bad)
+    P, repaired = merge_pose(Pv, Pp_bad)
+    assert repaired
+    assert np.linalg.eigvalsh(P).min() > 0.0
+    # Only the eigenvalue that round-off broke moved: ~1e-9 of the block.
+    np.testing.assert_allclose(P[:6, :6], Pp_bad, atol=1e-8 * np.abs(Pp).max())
+    P_nan, repaired = merge_pose(Pv, np.full((6, 6), np.nan))
+    assert repaired and np.isfinite(P_nan[6:, 6:]).all()
+    np.testing.assert_array_equal(P_nan[:6, 6:], 0.0)  # no cross-covariance from garbage
 
 
 def test_repeated_exact_updates_converge_to_the_truth() -> None:

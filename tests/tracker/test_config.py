@@ -126,3 +126,28 @@ def test_internal_config_is_table_one_in_physical_units() -> None:
 def test_bad_physical_terms_are_refused(change: dict[str, object]) -> None:
     with pytest.raises(ValueError):
         TrackerConfig(**change)  # type: ignore[arg-type]
+
+
+def test_gates_are_the_sigmas_the_docstrings_state() -> None:
+    """Every Table-I gate in sigma of the physical innovation it tests (config docstring, "Gates
+    in sigma"), and the landmark gate acting exactly there: a measurement 5.9 sigma from the
+    prediction is corrected, one at 6.1 sigma is an outlier."""
+    c = TrackerConfig()
+    sigmas = c.gate_sigmas()
+    assert sigmas["mahalanobis_lm"] == pytest.approx(6.0, abs=0.01)
+    assert sigmas["mahalanobis_rb"] == pytest.approx(7.9, abs=0.01)
+    assert sigmas["ransac_inlier_mahalanobis"] == pytest.approx(7.9, abs=0.01)
+    i = c.internal()
+    for n_sigma, outlier in ((5.9, False), (6.1, True)):
+        bank = LandmarkFilterBank(1, i)
+        z = np.zeros((1, 3))
+        bank.update(z, i.r_lm_m2)
+        for _ in range(100):
+            bank.predict(i.nominal_dt_s)
+            bank.update(z, i.r_lm_m2)
+        bank.predict(i.nominal_dt_s)
+        sigma = np.sqrt(bank.pp[0] + i.r_lm_m2)  # per axis, isotropic S
+        upd = bank.update(np.array([[n_sigma * sigma, 0.0, 0.0]]), i.r_lm_m2)
+        assert upd.mahalanobis[0] == pytest.approx(n_sigma, rel=1e-9)
+        assert bool(upd.rejected[0]) is outlier
+    assert n_sigma * sigma == pytest.approx(0.091, abs=2e-3)  # ~9 cm at 30 Hz

@@ -29,6 +29,12 @@ class ReferenceKf:
         self.c = config
         self.x = np.concatenate([z, np.zeros(3)])
         self.P = np.diag([config.p0_lm_position_m2] * 3 + [config.p0_lm_velocity_m2ps2] * 3)
+        self.corrections = 0
+
+    @property
+    def confirmed(self) -> bool:
+        """Whether a loss of this filter gates the restart of its landmark."""
+        return self.corrections >= self.c.lm_confirm_corrections
 
     def predict(self, dt: float) -> None:
         F = np.eye(6)
@@ -37,18 +43,25 @@ class ReferenceKf:
         self.x = F @ self.x
         self.P = F @ self.P @ F.T + Q * dt / self.c.nominal_dt_s
 
+    def passes(self, z: np.ndarray, R: np.ndarray | None = None) -> bool:
+        """Whether ``z`` passes the landmark gate against this filter's prediction."""
+        R = self.c.r_lm_m2 * np.eye(3) if R is None else R
+        y = z - self.x[:3]
+        return bool(np.sqrt(y @ np.linalg.solve(self.P[:3, :3] + R, y)) < self.c.mahalanobis_lm)
+
     def update(self, z: np.ndarray, gate: bool, R: np.ndarray | None = None) -> bool:
         """Returns False if gated out."""
         H = np.hstack([np.eye(3), np.zeros((3, 3))])
         R = self.c.r_lm_m2 * np.eye(3) if R is None else R
         y = z - H @ self.x
         S = H @ self.P @ H.T + R
-        if gate and np.sqrt(y @ np.linalg.solve(S, y)) >= self.c.mahalanobis_lm:
+        if gate and not self.passes(z, R):
             return False
         K = self.P @ H.T @ np.linalg.inv(S)
         self.x = self.x + K @ y
         IKH = np.eye(6) - K @ H
         self.P = IKH @ self.P @ IKH.T + K @ R @ K.T
+        self.corrections += 1
         return True
 
 
@@ -59,8 +72,10 @@ def test_batched_bank_equals_per_landmark_reference_kf() -> None:
     n = 42
     bank = LandmarkFilterBank(n, config)
     refs: list[ReferenceKf | None] = [None] * n
+    lost: list[ReferenceKf | None] = [None] * n  # a dropped filter, still predicting
     truth = rng.normal(scale=0.1, size=(n, 3))
     vel = rng.normal(scale=0.1, size=(n, 3))
+    refused = 0
     for k in range(200):
         dt = config.nominal_dt_s * (1 + (k % 7 == 0))  # a dropped frame now and then
         truth += vel * dt
@@ -69,7 +84,7 @@ def test_batched_bank_equals_per_landmark_reference_kf() -> None:
         z[rng.random(n) < 0.15] = np.nan  # missing
         if k:
             bank.predict(dt)
-            for r in refs:
+            for r in (*refs, *lost):
                 if r is not None:
                     r.predict(dt)
         upd = bank.update(z, config.r_lm_m2)
@@ -78,14 +93,19 @@ def test_batched_bank_equals_per_landmark_reference_kf() -> None:
             measured = bool(np.isfinite(z[i]).all())
             if r is None:
                 if measured:
-                    refs[i] = ReferenceKf(config, z[i])
+                    past = lost[i]
+                    if past is not None and not past.passes(z[i]):  # a gated restart
+                        refused += 1
+                        assert upd.rejected[i] and not upd.fresh[i] and not bank.alive[i]
+                        continue
+                    refs[i], lost[i] = ReferenceKf(config, z[i]), None
                     assert upd.fresh[i]
                 continue
             accepted = r.update(z[i], gate=True) if measured else False
             assert upd.rejected[i] == (measured and not accepted)
             assert upd.fresh[i] == accepted
             if 3 * r.P[0, 0] >= config.lm_loss_trace_m2:
-                refs[i] = None
+                refs[i], lost[i] = None, (r if r.confirmed else None)
                 assert upd.dropped[i] and not bank.alive[i]
                 continue
             assert bank.alive[i]
@@ -93,6 +113,7 @@ def test_batched_bank_equals_per_landmark_reference_kf() -> None:
             # not accumulated by the stable filter (observed ~2e-16 after every step).
             np.testing.assert_allclose(bank.x[i], r.x, atol=1e-12)
             np.testing.assert_allclose(bank.covariance(i), r.P, atol=1e-12)
+    assert refused > 5  # outliers right after a loss were gated, not restarted on
 
 
 def test_outlier_skips_correction_then_landmark_is_lost_and_restarts() -> None:
@@ -229,6 +250,7 @@ def test_anisotropic_bank_equals_per_landmark_reference_kf() -> None:
     n = 21
     bank = LandmarkFilterBank(n, config)
     refs: list[ReferenceKf | None] = [None] * n
+    lost: list[ReferenceKf | None] = [None] * n  # a dropped filter, still predicting
     truth = rng.normal(scale=0.1, size=(n, 3)) + np.array([0.0, 0.0, 0.7])
     vel = rng.normal(scale=0.1, size=(n, 3))
     dropped = 0
@@ -241,7 +263,7 @@ def test_anisotropic_bank_equals_per_landmark_reference_kf() -> None:
         R = ray_measurement_covariances(np.nan_to_num(z), config.r_lm_m2, 4.0)
         if k:
             bank.predict(dt)
-            for r in refs:
+            for r in (*refs, *lost):
                 if r is not None:
                     r.predict(dt)
         upd = bank.update(z, R)
@@ -249,13 +271,17 @@ def test_anisotropic_bank_equals_per_landmark_reference_kf() -> None:
             r = refs[i]
             if r is None:
                 if np.isfinite(z[i]).all():
-                    refs[i] = ReferenceKf(config, z[i])
+                    past = lost[i]
+                    if past is not None and not past.passes(z[i], R[i]):  # a gated restart
+                        assert upd.rejected[i] and not bank.alive[i]
+                        continue
+                    refs[i], lost[i] = ReferenceKf(config, z[i]), None
                 continue
             accepted = r.update(z[i], gate=True, R=R[i]) if np.isfinite(z[i]).all() else False
             assert upd.fresh[i] == accepted
             ratio = max(float(np.trace(R[i])) / (3 * config.r_lm_m2), 1.0)
             if np.trace(r.P[:3, :3]) >= config.lm_loss_trace_m2 * ratio:
-                refs[i] = None
+                refs[i], lost[i] = None, (r if r.confirmed else None)
                 dropped += 1
                 assert not bank.alive[i]
                 continue
@@ -310,3 +336,46 @@ def test_body_covariances_add_articulation_and_ablation_is_uniform() -> None:
     ablation = dataclasses.replace(config, use_uncertainty_models=False)
     np.testing.assert_array_equal(body_measurement_covariances(P, ablation, art),  # constant
                                   np.broadcast_to(0.05 * np.eye(3), (21, 3, 3)))
+
+
+def test_a_lost_landmark_restarts_only_within_the_gate() -> None:
+    """One skipped correction drops a Table-I filter; a confirmed one (lm_confirm_corrections)
+    keeps predicting, and its landmark restarts only on a measurement within M_lm of that
+    prediction: an outlier that follows the miss starts nothing, the landmark where it belongs
+    does. An unconfirmed filter (one born from an outlier, say) is no reference: its landmark
+    restarts anywhere. So does every landmark in the ablation (no gates)."""
+    config = TrackerConfig()
+    assert config.lm_confirm_corrections == 3
+    for corrections, gated in ((30, True), (1, False)):
+        for gate in (True, False):
+            bank = LandmarkFilterBank(1, config)
+            z = np.zeros((1, 3))
+            bank.update(z, config.r_lm_m2, gate=gate)
+            for _ in range(corrections):
+                bank.predict(config.nominal_dt_s)
+                bank.update(z, config.r_lm_m2, gate=gate)
+            bank.predict(config.nominal_dt_s)
+            lost = bank.update(np.full((1, 3), np.nan), config.r_lm_m2, gate=gate)  # a miss
+            assert lost.dropped[0] and not bank.alive[0]
+            bank.predict(config.nominal_dt_s)
+            outlier = bank.update(np.array([[0.3, 0.0, 0.0]]), config.r_lm_m2, gate=gate)
+            if gated and gate:
+                assert outlier.rejected[0] and not outlier.fresh[0] and not bank.alive[0]
+                assert outlier.mahalanobis[0] >= config.mahalanobis_lm
+                bank.predict(config.nominal_dt_s)
+                back = bank.update(np.array([[0.01, 0.0, 0.0]]), config.r_lm_m2, gate=gate)
+                assert back.fresh[0] and bank.alive[0]
+                np.testing.assert_array_equal(bank.x[0, :3], [0.01, 0.0, 0.0])
+            else:
+                assert outlier.fresh[0] and bank.alive[0]  # started at the outlier
+                np.testing.assert_array_equal(bank.x[0, :3], [0.3, 0.0, 0.0])
+    # forget() drops the past too: a new hand in these rows starts ungated.
+    bank = LandmarkFilterBank(1, config)
+    for _ in range(10):
+        bank.update(np.zeros((1, 3)), config.r_lm_m2)
+        bank.predict(config.nominal_dt_s)
+    bank.update(np.full((1, 3), np.nan), config.r_lm_m2)
+    assert bank.has_past[0]
+    bank.forget(np.array([True]))
+    bank.predict(config.nominal_dt_s)
+    assert bank.update(np.array([[0.5, 0.0, 0.0]]), config.r_lm_m2).fresh[0]

@@ -72,6 +72,24 @@ def test_every_frame_gives_a_hand_body_with_its_stamp(valve: list[HandLandmarks]
     assert "step" in stats.latency_ms
 
 
+def test_an_idle_second_hand_changes_no_published_body(valve: list[HandLandmarks]) -> None:
+    """With an idle second hand in view (labelled like the manipulating one) the node publishes
+    the same hand bodies, held-back frames late but in stamp order, with their body epoch; the
+    wait is counted (choosing_hand)."""
+    frames = valve[:80]
+    clean = FakeTracker()
+    clean.landmarks(*frames)
+    two = landmark_messages(generate("valve", 3, 0, idle_hand="same"))[:80]
+    assert all(len(m.hands) == 2 for m in two)
+    node = FakeTracker()
+    node.landmarks(*two)
+    assert _same_bodies(clean.bodies, node.bodies)
+    assert [b.seq for b in node.bodies] == list(range(len(node.bodies)))
+    assert {b.body_epoch for b in node.bodies} == {0}
+    assert node.stats().skipped.get("choosing_hand", 0) > 0
+    assert "second_hand_moving" not in node.stats().skipped
+
+
 def test_bad_input_is_counted_and_does_not_disturb_tracking(valve: list[HandLandmarks]) -> None:
     frames = valve[:60]
     clean = FakeTracker()

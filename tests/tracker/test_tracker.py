@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections import Counter
 from collections.abc import Callable
 
@@ -350,6 +351,7 @@ def test_reinitialised_body_keeps_its_body_frame() -> None:
     new centroid frame (reacquire off) lands elsewhere on the rotated hand."""
     offsets, tracker = _body_offsets(True)
     assert tracker.reinitializations == 1 and tracker.reacquisitions == 1
+    assert tracker.body_epoch == 0  # the same body frame: the same epoch
     before = np.mean([o[:3, 3] for o in offsets[20:36]], axis=0)
     shift, angle = _offset_change(offsets[30], offsets[-1])
     print(f"re-acquired: body frame moved {shift * 1e3:.2f} mm, {np.degrees(angle):.2f} deg")
@@ -358,6 +360,7 @@ def test_reinitialised_body_keeps_its_body_frame() -> None:
 
     fresh, tracker = _body_offsets(False)
     assert tracker.reacquisitions == 0
+    assert tracker.body_epoch == 1  # a new body frame: a new epoch (HandBody.body_epoch)
     shift, angle = _offset_change(fresh[30], fresh[-1])
     print(f"new frame: body frame moved {shift * 1e3:.2f} mm, {np.degrees(angle):.2f} deg")
     assert angle > np.radians(10.0)
@@ -419,15 +422,21 @@ def test_kinematic_model_wins_with_a_correct_prior_and_static_at_rest() -> None:
     "nothing moved" are often both plausible within one frame (~40-50 % of the turning frames go to
     the kinematic model); with the covariances matched to the noise the correct prior wins the
     clear majority. (Before the variance unit, Table-I-sized covariances made every landmark
-    fit every model, and the most confident prediction won ~always, by the log-determinant.)"""
+    fit every model, and the most confident prediction won ~always, by the log-determinant.)
+    Each model is scored with its predictive covariance, process noise included (body.py): at
+    rest the constant-velocity mean is the static one up to the velocity's noise, so it takes a
+    few rest frames (3 of 57 with the matched covariances)."""
     for config, share in ((TrackerConfig(), 0.3),
                           (hg.noise_matched_config(NOISE_M, gate=4.0), 0.7)):
         rest, turning = _revolute_run("oracle", config)
         print(f"rest {dict(rest)}, turning {dict(turning)}")
-        assert rest["static"] >= 0.95 * sum(rest.values())
+        assert rest["static"] >= 0.9 * sum(rest.values())
         assert turning["kinematic"] >= share * sum(turning.values())
         _, unaided = _revolute_run("none", config)
         assert unaided["kinematic"] == 0
+        _, switched_off = _revolute_run("oracle", dataclasses.replace(config,
+                                                                      use_kinematic_prior=False))
+        assert switched_off["kinematic"] == 0  # the evaluation's "without the kinematic prior"
         _, misled = _revolute_run("wrong", config)
         print(f"30 cm wrong prior: {dict(misled)}")
         assert misled["kinematic"] <= 0.1 * sum(misled.values())
@@ -508,7 +517,7 @@ def test_bad_data_is_counted_and_never_raises() -> None:
     assert result.estimate is not None  # the good hand (given twice) still counts
     assert result.reason is None and result.rejected == (
         "non_finite_visibility", "bad_shape", "bad_handedness", "non_finite_score",
-        "duplicate_handedness")
+        "duplicate_hand")
     stamp += hg.FRAME_NS
     result = tracker.step(stamp, [good], T_world_camera=np.full((4, 4), np.nan))
     assert result.estimate is None and result.reason == "bad_camera_pose"
@@ -523,7 +532,7 @@ def test_bad_data_is_counted_and_never_raises() -> None:
     assert est is not None and est.initialized
     assert tracker.rejected == {
         "non_finite_visibility": 1, "bad_shape": 1, "bad_handedness": 1, "non_finite_score": 1,
-        "duplicate_handedness": 1, "bad_camera_pose": 1, "frame_mismatch": 1, "bad_stamp": 1,
+        "duplicate_hand": 1, "bad_camera_pose": 1, "frame_mismatch": 1, "bad_stamp": 1,
         "bad_kinematic_prior": 7}
     assert_finite(est)
 
@@ -574,19 +583,30 @@ def test_hand_selection() -> None:
     left = hg.observe(T0, handedness="left", score=0.6)
     right = hg.observe(se3_exp(np.array([0.2, 0.0, 0.0, 0.0, 0.0, 0.0])) @ T0, handedness="right",
                        score=0.9)
-    for selection, expected in (("best", right), ("left", left), ("right", right)):
+    for selection, expected in (("left", left), ("right", right)):
         tracker = HandTracker(dataclasses.replace(TrackerConfig(), hand_selection=selection))
         for k in range(8):
             est = tracker.step(1_000_000_000 + k * hg.FRAME_NS, [left, right]).estimate
         assert est is not None and est.initialized
         # Noise-free and at rest the filters hold the measurement; float32 output (ulp 6e-8).
         np.testing.assert_allclose(est.landmark_points, expected.points, atol=1e-6)
-    # "best" keeps the hand it started with when the other one scores higher later.
-    tracker = HandTracker(TrackerConfig())
-    for k in range(8):
-        tracker.step(1_000_000_000 + k * hg.FRAME_NS, [left, right])
-    louder = dataclasses.replace(left, score=0.99)
-    est = tracker.step(1_000_000_000 + 8 * hg.FRAME_NS, [louder, right]).estimate
+    # "manipulating": two hands at rest, neither known to manipulate: no estimate while the
+    # tracker waits (hand_choice_wait_s), then the better scored, with the held-back frames.
+    config = TrackerConfig()
+    tracker = HandTracker(config)
+    wait = math.ceil(config.hand_choice_wait_s * 1e9 / hg.FRAME_NS)  # frames held back
+    for k in range(wait):
+        result = tracker.step(1_000_000_000 + k * hg.FRAME_NS, [left, right])
+        assert result.estimate is None and result.reason == "choosing_hand"
+    result = tracker.step(1_000_000_000 + wait * hg.FRAME_NS, [left, right])
+    assert result.estimate is not None and result.estimate.initialized
+    np.testing.assert_allclose(result.estimate.landmark_points, right.points, atol=1e-6)
+    assert len(result.replayed) == wait  # every held-back frame, now estimated
+    assert [e.stamp_ns for e in result.replayed] == [1_000_000_000 + k * hg.FRAME_NS
+                                                     for k in range(wait)]
+    # The choice is kept when the other hand scores higher later, or takes its label.
+    louder = dataclasses.replace(left, score=0.99, handedness="right")
+    est = tracker.step(1_000_000_000 + (wait + 1) * hg.FRAME_NS, [louder, right]).estimate
     assert est is not None
     np.testing.assert_allclose(est.landmark_points, right.points, atol=1e-6)  # float32, as above
 
@@ -704,9 +724,13 @@ def test_moving_camera_with_anisotropic_noise_is_frame_consistent() -> None:
     k0 = plain.initialized()[0]
     P0_inv, M0_inv = se3_inverse(plain.at(k0).pose), se3_inverse(moved.at(k0).pose)
     for k in plain.initialized():
-        # Round-off of the world transform G (|t| ~0.4 m) as in the fixed-camera test: ~1e-14.
+        # Round-off of the world transform G (|t| ~0.4 m), ~1e-15 while `static` wins; the few
+        # frames that `constant_velocity` wins extrapolate with the twist, a derivative that
+        # Table I's velocity noise leaves ill-conditioned (its round-off reaches ~1e-8 rad/s),
+        # so those poses differ by up to ~1e-6 m (measured 1.1e-6), and the contractive filter
+        # brings them back to ~1e-10. A wrongly rotated R_lm would differ by millimetres.
         np.testing.assert_allclose(moved.at(k).pose @ M0_inv,
-                                   G @ plain.at(k).pose @ P0_inv @ se3_inverse(G), atol=1e-9)
+                                   G @ plain.at(k).pose @ P0_inv @ se3_inverse(G), atol=1e-5)
 
 
 def test_published_covariance_accounts_for_error_correlation() -> None:
