@@ -69,6 +69,7 @@ OURS: dict[str, Callable[[TrackerConfig], TrackerConfig]] = {
     "ours": lambda config: config,
     "ours_no_kinematic_prior": no_kinematic_prior_config,
 }
+OPTIONAL_METHODS = ("ours_no_kinematic_prior",)  # run only when named in --methods
 BASELINES: dict[str, Callable[[Demonstration], JointEstimate]] = {
     "regal": lambda d: baselines.regal_style(d.stamps_ns, d.points, d.visibility),
     "screwmimic_faithful": lambda d: baselines.screwmimic_style(

@@ -596,7 +596,10 @@ class Attack:
 
 
 def _without_seq(messages: list[M]) -> list[M]:
-    return [dataclasses.replace(m, seq=0) for m in messages]
+    """The messages without what numbers them: ``seq``, and a body's ``body_epoch`` (a reset
+    between the clean and the attacked run starts a new epoch; each run keeps one)."""
+    return [dataclasses.replace(m, seq=0, **({"body_epoch": 0} if isinstance(m, HandBody) else {}))
+            for m in messages]
 
 
 class Pipeline:

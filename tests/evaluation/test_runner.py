@@ -64,7 +64,7 @@ def test_tasks_per_split_variant_and_condition() -> None:
 def test_cli_choices_are_the_runners() -> None:
     choices = (cli.METHOD_CHOICES, cli.VARIANT_CHOICES, cli.CONDITION_CHOICES,
                cli.SPLIT_CHOICES, cli.PARTITION_CHOICES)
-    assert choices == (METHODS, splits.VARIANTS, tuple(splits.CONDITIONS),
+    assert choices == ((*METHODS, *runner.OPTIONAL_METHODS), splits.VARIANTS, tuple(splits.CONDITIONS),
                        (*splits.SPLITS, "all", *runner.LEGACY_SPLITS), runner.PARTITIONS)
 
 
