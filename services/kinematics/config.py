@@ -11,8 +11,9 @@ for the joint velocity adds ``s * dt``. Both kinds therefore have the unit ``uni
 rad), written in the field names.
 
 Departures from Table I / OMIP (axis and point process noise 100x below Table I,
-``revolute_inflation_scale`` 3, filter start at 0.3 rad and 4 sigma) and their tuning-split
-evidence: docs/estimation.md#tuning-record.
+``revolute_inflation_scale`` 3, filter start at 0.3 rad and 4 sigma with a provisional prismatic
+start at 3 sigma, the tempered outlier-class likelihood, the rigid test instead of OMIP's motion
+memory) and their tuning-partition evidence: docs/estimation.md#tuning-record.
 """
 
 from __future__ import annotations
@@ -20,7 +21,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, fields
 
-LIKELIHOOD_AGGREGATIONS = ("product", "mean")
+LIKELIHOOD_AGGREGATIONS = ("tempered", "product", "mean")
 
 
 @dataclass(frozen=True)
@@ -74,6 +75,12 @@ class KinematicsConfig:
     # (sqrt of the Mahalanobis form of the displacement / rotation vector), so the initial axis is
     # not drawn from noise.
     min_motion_sigmas: float = 4.0
+    # The prismatic filter starts provisionally at this many sigmas (short strokes may never reach
+    # min_motion_sigmas) and restarts from the displacement that first reaches min_motion_sigmas.
+    prismatic_min_motion_sigmas: float = 3.0
+    # ... once the displacement has been beyond the rigid test (rigid_test_sigmas) for this long
+    # [s]: a displacement that persists, not a single noisy frame.
+    prismatic_min_motion_s: float = 0.1
 
     # --- Model selection (docs/estimation.md#model-selection) ---
     # Number of history entries sampled uniformly over the whole demonstration.
@@ -81,12 +88,23 @@ class KinematicsConfig:
     # Fixed standard deviations of the per-sample error densities.
     likelihood_sigma_translation_m: float = 0.05
     likelihood_sigma_rotation_rad: float = 0.2
-    # "product": log L = sum of per-sample log densities (a joint likelihood; default).
-    # "mean": log L = log of the arithmetic mean of the densities (OMIP's exact formula).
-    likelihood_aggregation: str = "product"
-    # Rigid "motion memory": rigid is ruled out for good once a delta exceeds these.
-    rigid_max_translation_m: float = 0.05
-    rigid_max_rotation_rad: float = 0.1
+    # "tempered" (default): per-sample mixture of the error density and an outlier class, summed
+    # and scaled to the effective number of independent samples
+    # (docs/estimation.md#model-selection).
+    # "product": log L = sum of the per-sample log densities (the samples as independent).
+    # "mean": log L = log of the arithmetic mean of the densities (OMIP's formula).
+    likelihood_aggregation: str = "tempered"
+    # Weight of the outlier class in each sample's mixture: a sample the hypothesis does not
+    # explain still scores this times the disconnected density ("tempered" only).
+    likelihood_outlier_weight: float = 0.1
+    # Correlation time of the hand-pose errors [s]: "tempered" counts one independent sample per
+    # this much demonstration (at least 1, at most the number of samples).
+    likelihood_correlation_time_s: float = 0.14
+    # Rigid test (docs/estimation.md#rigid-test): a component of a sample's delta (hand
+    # displacement; rotation) whose Mahalanobis distance against the published covariance is
+    # within this many sigmas is no motion; beyond it, the sigmas in excess are rigid's error. The
+    # rotation of the prismatic hypothesis is tested the same way.
+    rigid_test_sigmas: float = 2.5
     # Std of the normal prior on the distance from the revolute axis to the hand [m].
     revolute_max_joint_distance_m: float = 0.5
     # Per-sample density level of the "disconnected" hypothesis (OMIP wip disconnected_ne; with
@@ -131,7 +149,7 @@ class KinematicsConfig:
             "prismatic_initial_variance", "revolute_initial_variance",
             "prismatic_inflation_length_m", "revolute_inflation_scale",
             "likelihood_sigma_translation_m", "likelihood_sigma_rotation_rad",
-            "rigid_max_translation_m", "rigid_max_rotation_rad",
+            "likelihood_correlation_time_s",
             "revolute_max_joint_distance_m", "disconnected_density",
             "prismatic_min_translation_m", "revolute_min_rotation_rad", "max_prediction_dt_s",
             "outlier_gate_sigmas", "max_hand_displacement_m",
@@ -143,6 +161,8 @@ class KinematicsConfig:
             "revolute_qdot_noise_rad2_per_s3", "measurement_noise_floor",
             "prior_rigid", "prior_prismatic", "prior_revolute", "prior_disconnected",
             "min_still_duration_for_rigid_s", "min_motion_sigmas", "outlier_run_s",
+            "prismatic_min_motion_sigmas", "prismatic_min_motion_s",
+            "rigid_test_sigmas",
         )
         for f in fields(self):
             value = getattr(self, f.name)
@@ -158,6 +178,12 @@ class KinematicsConfig:
             raise ValueError(f"max_inflation_factor must be >= 1, got {self.max_inflation_factor!r}")
         if self.prior_disconnected <= 0.0:
             raise ValueError("prior_disconnected must be > 0 (the posterior needs one finite score)")
+        if self.prismatic_min_motion_sigmas > self.min_motion_sigmas:
+            raise ValueError("prismatic_min_motion_sigmas must be <= min_motion_sigmas, got "
+                             f"{self.prismatic_min_motion_sigmas!r} > {self.min_motion_sigmas!r}")
+        if not 0.0 < self.likelihood_outlier_weight < 1.0:
+            raise ValueError("likelihood_outlier_weight must be in (0, 1), got "
+                             f"{self.likelihood_outlier_weight!r}")
         if self.likelihood_sample_num < 1:
             raise ValueError(f"likelihood_sample_num must be >= 1, got {self.likelihood_sample_num}")
         if self.history_capacity < 2 * self.likelihood_sample_num or self.history_capacity % 2:

@@ -25,11 +25,15 @@ Per accepted frame (docs/estimation.md#update-loop and the sections before it):
    covariance is ``Sigma(t) + Sigma(t0) + floor I`` (OMIP's formula with its own prediction D = I).
    A joint filter starts (OMIP init from the current measurement) only once the hand moved at least
    ``prismatic_min_translation_m`` / rotated ``revolute_min_rotation_rad`` from the reference, and that
-   motion is at least ``min_motion_sigmas`` standard deviations of its noise. While the
+   motion is at least ``min_motion_sigmas`` standard deviations of its noise (the prismatic filter
+   also provisionally at ``prismatic_min_motion_sigmas``, once the displacement has been beyond the
+   rigid test for ``prismatic_min_motion_s``; it restarts at ``min_motion_sigmas``). While the
    rotation is significant but still below ``revolute_min_rotation_rad``, a started prismatic filter
    alone does not make the type known: a revolute joint cannot be ruled out before its filter runs.
-3. The sample and the joint values enter the bounded history, and model selection scores the four
-   types (:mod:`services.kinematics.selection`).
+3. The sample, the joint values and the rigid test (the squared Mahalanobis distances of the
+   displacement and of the rotation vector against their covariances, docs/estimation.md#rigid-test)
+   enter the bounded history, and model selection scores the four types
+   (:mod:`services.kinematics.selection`).
 
 Output canonicalisation (docs/estimation.md#output-canonicalisation): internally the sign of an
 axis is fixed by the first motion (so
@@ -76,15 +80,17 @@ from services.kinematics.filters import (
 from services.kinematics.filters.geometry import (
     adjoint_fast,
     cross3,
+    mahalanobis2_3,
     se3_inverse_fast,
     se3_log_fast,
+    so3_log_fast,
 )
 from services.kinematics.prediction import predict_hand_pose, predicted_pose
 from services.kinematics.selection import ModelSelector
 
 Array = NDArray[np.float64]
 
-SNAPSHOT_VERSION = 2
+SNAPSHOT_VERSION = 3
 
 RejectReason = Literal["invalid_stamp", "invalid_value", "bad_shape", "non_finite",
                        "invalid_covariance", "duplicate_stamp", "out_of_order", "outlier"]
@@ -252,6 +258,10 @@ class KinematicEstimator:
         self._prismatic: PrismaticJoint | None = None
         self._revolute: RevoluteJoint | None = None
         self._rotation_pending = False
+        # The prismatic filter started below min_motion_sigmas, and the stamp since which the
+        # displacement has been above prismatic_min_motion_sigmas (docs/estimation.md#filter-start).
+        self._prismatic_provisional = False
+        self._displaced_since: int | None = None
         # Outlier gate (docs/estimation.md#input-gates): the innovation (6,) of the last accepted
         # pose against the joint prediction and that pose's covariance (None unless the model was
         # prismatic or revolute), the number of consecutive outliers, the stamp of the first, and
@@ -405,32 +415,38 @@ class KinematicEstimator:
         self._rigid.update(D, Sigma + self._Sigma0_floored)
         self._disconnected.update(D, Sigma)
 
+        # The rigid test and the filter starts (docs/estimation.md#rigid-test): squared Mahalanobis
+        # distances of the displacement and of the rotation vector against their covariances,
+        # the current pose's plus the reference's (rotated with the delta).
+        G = translation_jacobian(position)
+        Sigma_disp = G @ Sigma @ G.T
+        w = so3_log_fast(R_D)
+        d2_disp = mahalanobis2_3(disp, Sigma_disp + self._Sigma0_disp + self._floor3)
+        d2_rot = mahalanobis2_3(
+            w, Sigma[3:, 3:] + R_D @ self._Sigma0[3:, 3:] @ R_D.T + self._floor3)  # OMIP's Sigma_z
+
         # 2. Joint filters: predict once with the true dt, then correct (or start).
-        if self._prismatic is not None or disp_norm >= cfg.prismatic_min_translation_m:
-            G = translation_jacobian(position)
-            Sigma_disp = G @ Sigma @ G.T
-            if self._prismatic is not None:
-                f = prismatic_noise_inflation(disp_norm, cfg)
-                self._prismatic.predict(dt)
-                self._prismatic.update(disp, f * Sigma_disp + self._floor3)  # R = f Sigma + floor I
-            elif self._significant(disp, Sigma_disp + self._Sigma0_disp):
-                self._prismatic = PrismaticJoint.from_displacement(cfg, disp, self._Sigma0_disp)
-                self._selector.history.backfill_prismatic(self._prismatic.u)
+        confirmed = d2_disp >= cfg.min_motion_sigmas ** 2
+        persists = self._displacement_persists(stamp, d2_disp)
+        if self._prismatic is not None and not (self._prismatic_provisional and confirmed):
+            f = prismatic_noise_inflation(disp_norm, cfg)
+            self._prismatic.predict(dt)
+            self._prismatic.update(disp, f * Sigma_disp + self._floor3)  # R = f Sigma + floor I
+        elif disp_norm >= cfg.prismatic_min_translation_m and (
+                confirmed or (persists and d2_disp >= cfg.prismatic_min_motion_sigmas ** 2)):
+            # A start, or the restart of a provisional filter: its axis came from weaker evidence,
+            # and an EKF does not recover from an axis far off (docs/estimation.md#filter-start).
+            self._prismatic = PrismaticJoint.from_displacement(cfg, disp, self._Sigma0_disp)
+            self._prismatic_provisional = not confirmed
+            self._selector.history.backfill_prismatic(self._prismatic.u)
         if self._revolute is not None:
-            (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = R_D.tolist()
-            s0, s1, s2 = r21 - r12, r02 - r20, r10 - r01
-            angle = math.atan2(0.5 * math.sqrt(s0 * s0 + s1 * s1 + s2 * s2),
-                               0.5 * (r00 + r11 + r22 - 1.0))
-            f = revolute_noise_inflation(angle, cfg)
+            f = revolute_noise_inflation(math.sqrt(float(w @ w)), cfg)
             self._revolute.predict(dt)
             self._revolute.update(D, f * Sigma + self._floor6)  # R = f Sigma + floor I
         else:
-            z = se3_log_fast(D)
-            w = z[3:]
-            significant = self._significant(
-                w, Sigma[3:, 3:] + R_D @ self._Sigma0[3:, 3:] @ R_D.T)  # OMIP's Sigma_z, rotation block
+            significant = d2_rot >= cfg.min_motion_sigmas ** 2
             if significant and float(w @ w) >= cfg.revolute_min_rotation_rad ** 2:
-                self._revolute = RevoluteJoint.from_twist(cfg, z, self._Sigma0)
+                self._revolute = RevoluteJoint.from_twist(cfg, se3_log_fast(D), self._Sigma0)
                 self._selector.history.backfill_revolute(self._revolute.u)
             # A significant rotation below the start threshold: a revolute joint cannot be ruled
             # out before its filter runs, so no type is published meanwhile (_type_known).
@@ -439,9 +455,10 @@ class KinematicEstimator:
         # 3. History and model selection.
         self._selector.add(disp, R_D,
                            0.0 if self._prismatic is None else self._prismatic.q,
-                           0.0 if self._revolute is None else self._revolute.q)
+                           0.0 if self._revolute is None else self._revolute.q,
+                           d2_disp, d2_rot)
         self._log_scores = self._selector.log_scores(self._prismatic, self._revolute, position,
-                                                     T0[:3, 3])
+                                                     T0[:3, 3], (stamp - self._stamp0) * 1e-9)
         self._updates += 1
         self._model = self._make_model()
         return UpdateResult(model=self._model, note=note)
@@ -521,10 +538,16 @@ class KinematicEstimator:
         return (C_pred + Sigma + A @ self._Sigma0 @ A.T
                 + (s_q * dt * dt * dt / 3.0) * np.outer(xi, xi) + self._floor6)
 
-    def _significant(self, v: Array, Sigma_v: Array) -> bool:
-        """Whether ``v^T Sigma_v^-1 v >= min_motion_sigmas^2`` (``Sigma_v`` floored)."""
-        S = Sigma_v + self.config.measurement_noise_floor * np.eye(len(v))
-        return float(v @ np.linalg.solve(S, v)) >= self.config.min_motion_sigmas ** 2
+    def _displacement_persists(self, stamp: int, d2_disp: float) -> bool:
+        """Whether the displacement has been beyond the rigid test (``rigid_test_sigmas``) for
+        ``prismatic_min_motion_s`` of stamps, this frame included: a provisional start needs a
+        displacement that persists, not one noisy frame (docs/estimation.md#filter-start)."""
+        if d2_disp < self.config.rigid_test_sigmas ** 2:
+            self._displaced_since = None
+            return False
+        if self._displaced_since is None:
+            self._displaced_since = stamp
+        return (stamp - self._displaced_since) * 1e-9 >= self.config.prismatic_min_motion_s
 
     def _set_reference(self, T: Array, Sigma: Array, stamp: int) -> None:
         self._T0 = T.copy()
@@ -596,6 +619,8 @@ class KinematicEstimator:
             "selector": self._selector.to_state(),
             "log_scores": self._log_scores.copy(),
             "rotation_pending": self._rotation_pending,
+            "prismatic_provisional": self._prismatic_provisional,
+            "displaced_since_ns": self._displaced_since,
             "innovation": None if self._innovation is None else {
                 "e": self._innovation[0].copy(), "covariance": self._innovation[1].copy()},
             "outliers": self._outliers,
@@ -646,6 +671,10 @@ class KinematicEstimator:
         if not np.isfinite(est._log_scores).any():
             raise SnapshotError("estimator.log_scores: no finite score")
         est._rotation_pending = r.boolean("rotation_pending")
+        est._prismatic_provisional = r.boolean("prismatic_provisional")
+        est._displaced_since = r.optional_integer("displaced_since_ns", 0, INT64_MAX)
+        if est._prismatic_provisional and est._prismatic is None:
+            raise SnapshotError("estimator.prismatic_provisional: true without a prismatic filter")
         innovation = r.optional_map("innovation")
         est._innovation = (None if innovation is None
                            else (innovation.array("e", (6,)),

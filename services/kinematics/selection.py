@@ -1,30 +1,36 @@
-"""Model selection over the joint hypotheses (OMIP's rules in log space; docs/estimation.md#model-selection).
+"""Model selection over the joint hypotheses (OMIP's structure, in log space).
 
 Structure (docs/estimation.md#model-selection, which also lists the departures from OMIP):
 
 - History: one sample per frame, the hand displacement ``d_k = c(k) - c(t0)`` [m] (``c`` = hand origin
   in ``frame``) and the rotation ``R_k`` of the delta ``D_k = T(k) T(t0)^-1``, with the prismatic and
   revolute joint values estimated at that frame (stored after the frame's correction, so without
-  OMIP's one-frame lag). Bounded memory: when ``history_capacity`` samples are stored, every other
-  one is dropped and only every ``stride``-th later frame is stored (``stride`` doubles), so the
-  samples stay uniformly spaced over the whole demonstration.
+  OMIP's one-frame lag), and the rigid test of the frame (below). Bounded memory: when
+  ``history_capacity`` samples are stored, every other one is dropped and only every ``stride``-th
+  later frame is stored (``stride`` doubles), so the samples stay uniformly spaced over the whole
+  demonstration.
 - ``m = min(n, N)`` samples are drawn at ``k_j = round(j max(1, n / N))``, ``j = 0..m-1``.
-- Per sample and hypothesis: ``e_t = |d_j - d_hyp|`` [m], the distance between the measured hand
-  position and the one the hypothesis predicts (including the filter's reference correction), and
-  ``e_r = angle(R_j^T R_hyp)`` [rad]. OMIP compares the translations of the deltas instead, i.e. the
-  motion of the frame origin, which scales every rotation error by the distance from the camera to
-  the object; the hand point makes ``e_t`` independent of the frame;
-  ``log l_j = log N1(e_t; 0, sigma_t) + log N1(e_r; 0, sigma_r)`` (normalised 1-D normal densities,
+- Per sample and joint hypothesis: ``e_t = |d_j - d_hyp|`` [m], the distance between the measured
+  hand position and the one the hypothesis predicts (including the filter's reference correction),
+  and ``e_r = angle(R_j^T R_hyp)`` [rad]. OMIP compares the translations of the deltas instead, i.e.
+  the motion of the frame origin, which scales every rotation error by the distance from the camera
+  to the object; the hand point makes ``e_t`` independent of the frame;
+  ``log N_j = log N1(e_t; 0, sigma_t) + log N1(e_r; 0, sigma_r)`` (normalised 1-D normal densities,
   at most ``log 15.92``). The hypotheses' errors are defined by each filter's ``history_errors``;
   :meth:`ModelSelector.log_scores` evaluates the same quantities in a fused, vectorised form.
-- ``log L`` aggregates the samples: ``"product"`` (default) sums the ``log l_j``, the joint likelihood
-  of the samples; ``"mean"`` is OMIP's arithmetic mean, ``logsumexp(log l_j) - log m``.
-- Unnormalised log scores: rigid ``log prior + log L + log M`` (``M`` = 0 for good once a delta exceeds
-  ``rigid_max_translation_m`` or ``rigid_max_rotation_rad``); prismatic ``log prior + log L``;
-  revolute ``log prior + log L + log N1(d; 0, revolute_max_joint_distance_m)``, ``d`` the distance from
-  the axis to the current hand origin; disconnected ``log prior + k log(disconnected_density)`` with
-  ``k = m`` for "product" and ``k = 1`` for "mean" (OMIP's constant 0.8). A joint filter that has not
-  started (too little motion) scores 0 (log -inf).
+- Rigid test (docs/estimation.md#rigid-test): rigid's errors are by how many sigmas the displacement
+  and the rotation of the delta exceed ``rigid_test_sigmas`` of their published covariance
+  (``x = max(0, sqrt(d2) - k)``, standardised: they enter as ``e = x sigma``); the prismatic
+  hypothesis' rotation error is rigid's (the same prediction, no rotation).
+- ``log L`` aggregates the samples: ``"tempered"`` (default) sums ``log((1 - eps) N_j + eps c)``
+  (``c`` = ``disconnected_density``, ``eps`` = ``likelihood_outlier_weight``) and scales the sum by
+  ``n_eff / m``, ``n_eff = clip(duration / likelihood_correlation_time_s, 1, m)``; ``"product"``
+  sums the ``log N_j``; ``"mean"`` is OMIP's arithmetic mean, ``logsumexp(log N_j) - log m``.
+- Unnormalised log scores: rigid and prismatic ``log prior + log L``; revolute
+  ``log prior + log L + log N1(d; 0, revolute_max_joint_distance_m)``, ``d`` the distance from the
+  axis to the current hand origin; disconnected ``log prior + k log(disconnected_density)`` with
+  ``k = n_eff`` for "tempered", ``m`` for "product" and ``1`` for "mean" (OMIP's constant 0.8). A
+  joint filter that has not started (too little motion) scores 0 (log -inf).
 - Posterior = softmax of the log scores over ``JOINT_TYPES``; ties go to the earlier type.
 """
 
@@ -61,26 +67,31 @@ _VD = slice(16, 19)  # v d
 _R = slice(19, 28)  # delta rotation, row-major (9)
 _SR = slice(28, 37)  # s R
 _VR = slice(37, 46)  # v R
-_NFEAT = 46
-_NFEAT_T = 19  # features that enter the translation errors
-_QR = 46  # revolute joint value qr [rad] (not a feature)
-_FRAME = 47  # frame index since t0 (not a feature)
-_NCOL = 48
+_RT2 = 46  # rigid test: displacement beyond the test, squared [sigmas^2]
+_RR2 = 47  # rigid test: rotation beyond the test, squared [sigmas^2] (rigid and prismatic)
+_NFEAT = 48
+_NFEAT_T = 19  # features that enter the translation errors of the joints
+_QR = 48  # revolute joint value qr [rad] (not a feature)
+_FRAME = 49  # frame index since t0 (not a feature)
+_NCOL = 50
 
 
 class DeltaHistory:
     """Bounded, uniformly spaced store of per-frame samples (see the module docstring).
 
-    ``data`` (capacity x 48, the first ``n`` rows valid) holds per sample the features
-    ``[1, d, |d|^2, angle^2, qp, qp^2, qp d, s, v, s d, v d, R, s R, v R]`` (``d`` hand displacement
-    [m], ``R`` delta rotation row-major, ``angle`` its angle, ``qp`` prismatic joint value, ``s, v =
-    sin(qr), 1 - cos(qr)`` of the revolute joint value ``qr``), then ``qr`` and the frame index.
+    ``data`` (capacity x 50, the first ``n`` rows valid) holds per sample the features
+    ``[1, d, |d|^2, angle^2, qp, qp^2, qp d, s, v, s d, v d, R, s R, v R, et^2, er^2]`` (``d`` hand
+    displacement [m], ``R`` delta rotation row-major, ``angle`` its angle, ``qp`` prismatic joint
+    value, ``s, v = sin(qr), 1 - cos(qr)`` of the revolute joint value ``qr``, ``et, er`` by how
+    many sigmas the displacement and the rotation exceed the rigid test at ``rigid_test_sigmas``),
+    then ``qr`` and the frame index.
     """
 
-    def __init__(self, capacity: int) -> None:
+    def __init__(self, capacity: int, rigid_test_sigmas: float = 2.5) -> None:
         if capacity < 2 or capacity % 2:
             raise ValueError(f"capacity must be even and >= 2, got {capacity}")
         self.capacity = capacity
+        self.rigid_test_sigmas = rigid_test_sigmas
         self.data: Array = np.zeros((capacity, _NCOL))
         self.n = 0
         self.stride = 1
@@ -88,8 +99,11 @@ class DeltaHistory:
         self._version = 0  # bumped on every change of the stored samples
         self._cache: tuple[int, int, Array, Array] = (-1, -1, self.data[:0], np.zeros(_NFEAT))
 
-    def offer(self, d: Array, R: Array, q_prismatic: float, q_revolute: float) -> bool:
-        """Offer the next frame's hand displacement ``d`` (3,) [m] and delta rotation ``R`` (3x3).
+    def offer(self, d: Array, R: Array, q_prismatic: float, q_revolute: float,
+              d2_translation: float = 0.0, d2_rotation: float = 0.0) -> bool:
+        """Offer the next frame's hand displacement ``d`` (3,) [m] and delta rotation ``R`` (3x3),
+        with the squared Mahalanobis distances of ``d`` and of the rotation vector of ``R``
+        against the published covariance (the rigid test, docs/estimation.md#rigid-test).
 
         Stored only if the frame index is on the stride; returns whether it was stored.
         """
@@ -107,13 +121,23 @@ class DeltaHistory:
         qp = q_prismatic
         s = math.sin(q_revolute)
         v = 1.0 - math.cos(q_revolute)
+        dd = d0 * d0 + d1 * d1 + d2 * d2
+        x_t = self._excess_sigmas(d2_translation)
+        x_r = self._excess_sigmas(d2_rotation)
         self.data[self.n] = (
-            [1.0, d0, d1, d2, d0 * d0 + d1 * d1 + d2 * d2, angle * angle, qp, qp * qp,
+            [1.0, d0, d1, d2, dd, angle * angle, qp, qp * qp,
              qp * d0, qp * d1, qp * d2, s, v, s * d0, s * d1, s * d2, v * d0, v * d1, v * d2]
-            + r + [s * x for x in r] + [v * x for x in r] + [q_revolute, float(k)])
+            + r + [s * x for x in r] + [v * x for x in r]
+            + [x_t * x_t, x_r * x_r, q_revolute, float(k)])
         self.n += 1
         self._version += 1
         return True
+
+    def _excess_sigmas(self, mahalanobis2: float) -> float:
+        """``max(0, sqrt(mahalanobis2) - rigid_test_sigmas)``
+        (:func:`~services.kinematics.filters.excess_sigmas`)."""
+        m = math.sqrt(mahalanobis2) if mahalanobis2 > 0.0 else 0.0
+        return m - self.rigid_test_sigmas if m > self.rigid_test_sigmas else 0.0
 
     def _decimate(self) -> None:
         """Keep every other sample (frames 0, 2s, 4s, ...) and double the stride."""
@@ -130,7 +154,7 @@ class DeltaHistory:
         return np.floor(np.arange(m) * step + 0.5).astype(np.intp)
 
     def samples(self, num: int) -> tuple[Array, Array]:
-        """Feature rows (m x 46) at :meth:`sample_indices` and their column sums (46,), cached
+        """Feature rows (m x 48) at :meth:`sample_indices` and their column sums (48,), cached
         until the stored samples change."""
         version, num_cached, F, total = self._cache
         if version == self._version and num_cached == num:
@@ -156,6 +180,12 @@ class DeltaHistory:
         """Traces of the delta rotations (n,)."""
         R = self.data[:self.n, _R]
         return R[:, 0] + R[:, 4] + R[:, 8]
+
+    @property
+    def rigid_errors2(self) -> tuple[Array, Array]:
+        """Squared excesses (n,) over the rigid test of the displacement and of the rotation
+        [sigmas^2]."""
+        return self.data[:self.n, _RT2], self.data[:self.n, _RR2]
 
     @property
     def q_prismatic(self) -> Array:
@@ -217,8 +247,8 @@ class DeltaHistory:
                 "frames_seen": self.frames_seen, "data": self.data[:self.n].copy()}
 
     @classmethod
-    def from_state(cls, state: dict[str, Any] | SnapshotReader,
-                   capacity: int | None = None) -> DeltaHistory:
+    def from_state(cls, state: dict[str, Any] | SnapshotReader, capacity: int | None = None,
+                   rigid_test_sigmas: float = 2.5) -> DeltaHistory:
         """Rebuild from :meth:`to_state` (with ``capacity``, if given, the one it must have);
         SnapshotError naming the field for a value :meth:`to_state` cannot have written."""
         r = state if isinstance(state, SnapshotReader) else SnapshotReader(state, "history")
@@ -226,7 +256,7 @@ class DeltaHistory:
         if cap % 2 or (capacity is not None and cap != capacity):
             raise SnapshotError(f"{r.path}.capacity: {cap} is not the configured "
                                 f"history_capacity {capacity}")
-        h = cls(cap)
+        h = cls(cap, rigid_test_sigmas)
         h.frames_seen = r.integer("frames_seen", 0)
         h.n = r.integer("n", 0, min(cap, h.frames_seen))
         h.stride = r.integer("stride", 1, max(1, h.frames_seen))
@@ -266,10 +296,7 @@ class ModelSelector:
 
     def __init__(self, config: KinematicsConfig) -> None:
         self.config = config
-        self.history = DeltaHistory(config.history_capacity)
-        # OMIP rigid "motion memory" M: False for good once any delta moved beyond the rigid limits.
-        self.rigid_memory = True
-        self._cos_rigid_max = math.cos(config.rigid_max_rotation_rad)
+        self.history = DeltaHistory(config.history_capacity, config.rigid_test_sigmas)
         self._log_priors = [math.log(p) if p > 0.0 else -math.inf
                             for p in (config.prior_rigid, config.prior_prismatic,
                                       config.prior_revolute, config.prior_disconnected)]
@@ -278,27 +305,34 @@ class ModelSelector:
         self._kt = 0.5 / (st * st)  # log l = -kt e_t^2 - kr e_r^2 - c
         self._kr = 0.5 / (sr * sr)
         self._c = _LOG_2PI + math.log(st * sr)
-        self._product = config.likelihood_aggregation == "product"
+        self._aggregation = config.likelihood_aggregation
+        eps = config.likelihood_outlier_weight
+        self._log_inlier = math.log1p(-eps)
+        self._log_outlier = math.log(eps) + self._log_disconnected
 
-    def add(self, d: Array, R: Array, q_prismatic: float, q_revolute: float) -> None:
-        """Record a frame: hand displacement ``d`` (3,) [m], delta rotation ``R`` (3x3), and the joint
-        values after the frame's correction."""
-        if self.rigid_memory:
-            trace = R[0, 0] + R[1, 1] + R[2, 2]
-            if (float(d @ d) > self.config.rigid_max_translation_m ** 2
-                    or 0.5 * (trace - 1.0) < self._cos_rigid_max):
-                self.rigid_memory = False
-        self.history.offer(d, R, q_prismatic, q_revolute)
+    def add(self, d: Array, R: Array, q_prismatic: float, q_revolute: float,
+            d2_translation: float = 0.0, d2_rotation: float = 0.0) -> None:
+        """Record a frame: hand displacement ``d`` (3,) [m], delta rotation ``R`` (3x3), the joint
+        values after the frame's correction, and the squared Mahalanobis distances of ``d`` and of
+        the rotation vector of ``R`` against the published covariance (the rigid test)."""
+        self.history.offer(d, R, q_prismatic, q_revolute, d2_translation, d2_rotation)
+
+    def effective_samples(self, m: int, duration_s: float) -> float:
+        """Independent samples that ``m`` samples over ``duration_s`` are worth ("tempered"):
+        one per ``likelihood_correlation_time_s``, at least 1 and at most ``m``."""
+        return min(float(m), max(1.0, duration_s / self.config.likelihood_correlation_time_s))
 
     def log_scores(self, prismatic: PrismaticJoint | None, revolute: RevoluteJoint | None,
-                   hand_position: Array, reference_position: Array) -> Array:
+                   hand_position: Array, reference_position: Array,
+                   duration_s: float = 0.0) -> Array:
         """Unnormalised log scores (4,) in ``JOINT_TYPES`` order.
 
         ``hand_position`` (3,): the current hand origin in ``frame`` [m] (revolute distance prior);
-        ``reference_position`` (3,): the hand origin of the measured reference pose [m].
+        ``reference_position`` (3,): the hand origin of the measured reference pose [m];
+        ``duration_s``: time since the reference pose ("tempered": the effective sample count).
 
         Fused form of the filters' ``history_errors``: for each hypothesis a coefficient vector
-        ``c`` over the sample features gives ``-log l_j = kt e_t^2 + kr e_r^2 + log(2 pi st sr) =
+        ``c`` over the sample features gives ``-log N_j = kt e_t^2 + kr e_r^2 + log(2 pi st sr) =
         f_j . c`` (the revolute rotation error enters per sample, through its arccos), so the
         "product" log likelihood is a dot product with the feature sums.
         """
@@ -306,19 +340,18 @@ class ModelSelector:
         m = len(F)
         kt, kr = self._kt, self._kr
         lp = self._log_priors
-        out = [-math.inf, -math.inf, -math.inf,
-               lp[3] + (m if self._product else 1) * self._log_disconnected]
+        out = [-math.inf, -math.inf, -math.inf, 0.0]
         C = np.zeros((_NFEAT, 3))
         C[_ONE] = self._c
-        C[_DD] = kt
-        C[_ANG2, :2] = kr  # rigid and prismatic: e_r = angle of the delta
+        C[_RT2, 0] = 0.5  # rigid: standardised errors beyond the rigid test
+        C[_RR2, :2] = 0.5  # rigid and prismatic: the rotation beyond the rigid test
         if prismatic is not None:
             # e_t^2 = |d - o - qp u|^2 = |d|^2 - 2 d.o + |o|^2 + qp^2 - 2 qp d.u + 2 qp u.o
             u0, u1, u2 = prismatic.u.tolist()
             o0, o1, o2 = prismatic.o.tolist()
             k2 = -2.0 * kt
             C[:_QPD.stop, 1] = (self._c + kt * (o0 * o0 + o1 * o1 + o2 * o2), k2 * o0, k2 * o1,
-                                k2 * o2, kt, kr, -k2 * (u0 * o0 + u1 * o1 + u2 * o2), kt,
+                                k2 * o2, kt, 0.0, -k2 * (u0 * o0 + u1 * o1 + u2 * o2), kt,
                                 k2 * u0, k2 * u1, k2 * u2)
         er2: Array | None = None
         rev_prior = 0.0
@@ -327,22 +360,30 @@ class ModelSelector:
             C[:_NFEAT_T, 2] = coef
             d_axis = point_line_distance(hand_position, revolute.p, revolute.u)
             rev_prior = lp[2] + log_normal_pdf(d_axis, self.config.revolute_max_joint_distance_m)
-        if self._product:
-            neg = (total @ C).tolist()  # sums over the samples of -log l_j
-            if self.rigid_memory:
-                out[0] = lp[0] - neg[0]
+        if self._aggregation == "product":
+            neg = (total @ C).tolist()  # sums over the samples of -log N_j
+            out[0] = lp[0] - neg[0]
             if prismatic is not None:
                 out[1] = lp[1] - neg[1]
             if er2 is not None:
                 out[2] = rev_prior - neg[2] - kr * float(er2.sum())
+            out[3] = lp[3] + m * self._log_disconnected
             return np.array(out)
         L = -(F @ C)  # (m, 3) per-sample log densities
         if er2 is not None:
             L[:, 2] -= kr * er2
-        mx = L.max(axis=0)
-        agg = (mx + np.log(np.exp(L - mx).mean(axis=0))).tolist()  # log of the arithmetic mean
-        if self.rigid_memory:
-            out[0] = lp[0] + agg[0]
+        if self._aggregation == "tempered":
+            # log((1 - eps) N_j + eps c): the sample is explained, or it is an outlier that the
+            # hypothesis explains no better than disconnected does.
+            mix = np.logaddexp(L + self._log_inlier, self._log_outlier)
+            n_eff = self.effective_samples(m, duration_s)
+            agg = (mix.sum(axis=0) * (n_eff / m)).tolist()
+            out[3] = lp[3] + n_eff * self._log_disconnected
+        else:  # "mean": log of the arithmetic mean (OMIP)
+            mx = L.max(axis=0)
+            agg = (mx + np.log(np.exp(L - mx).mean(axis=0))).tolist()
+            out[3] = lp[3] + self._log_disconnected
+        out[0] = lp[0] + agg[0]
         if prismatic is not None:
             out[1] = lp[1] + agg[1]
         if er2 is not None:
@@ -389,8 +430,8 @@ class ModelSelector:
         return er * er, coef
 
     def to_state(self) -> dict[str, Any]:
-        """Rigid motion memory and history, for snapshots."""
-        return {"rigid_memory": self.rigid_memory, "history": self.history.to_state()}
+        """The history, for snapshots."""
+        return {"history": self.history.to_state()}
 
     @classmethod
     def from_state(cls, config: KinematicsConfig,
@@ -399,8 +440,8 @@ class ModelSelector:
         :meth:`to_state` cannot have written."""
         r = state if isinstance(state, SnapshotReader) else SnapshotReader(state, "selector")
         s = cls(config)
-        s.rigid_memory = r.boolean("rigid_memory")
-        s.history = DeltaHistory.from_state(r.map("history"), config.history_capacity)
+        s.history = DeltaHistory.from_state(r.map("history"), config.history_capacity,
+                                            config.rigid_test_sigmas)
         return s
 
 

@@ -10,6 +10,16 @@ body is calibrated from its initialisation window (:meth:`CovarianceCalibration.
 
 Residuals are in the tracking frame (m); ``W_i = R_i^-1`` are the inverse body-level measurement
 covariances ``R_rb`` (m^-2).
+
+Bound (docs/estimation.md#covariance-calibration): each landmark's squared standardised residual
+``r_i' R_i^-1 r_i`` enters the variance factor at most as ``c``, the 3-dof chi-square quantile of
+``variance_factor_residual_sigmas`` sigmas (14.16 for 3). A landmark that far off is an outlier
+the gates let through (the initialisation window's fit has no gate at all), not evidence that
+every landmark is noisier: uncapped, one such landmark in a window of 5 frames seeded factors of
+12-28 on the tuning partition where the steady state is 1-2. With every term at most ``c``, the
+variance of unit weight is at most ``c n / (3n - 6) <= c / 2`` (``n >= 6`` landmarks, as
+``min_inliers`` requires), 7.08 for 3 sigmas, and the published factor at most that times
+``max_correlation_factor``.
 """
 
 from __future__ import annotations
@@ -20,6 +30,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.stats import chi2, norm
 
 from services.common.kabsch import weighted_kabsch
 from services.tracker.body_measurement import information_sums
@@ -86,6 +97,8 @@ class CovarianceCalibration:
 
     def __init__(self, config: TrackerConfig) -> None:
         self._cfg = config
+        # The cap of each landmark's term (see the module docstring).
+        self._term_cap = float(chi2.isf(2.0 * norm.sf(config.variance_factor_residual_sigmas), 3))
         self.reset()
 
     def reset(self) -> None:
@@ -125,7 +138,8 @@ class CovarianceCalibration:
             W = np.where(common, 1.0 / f.variances, 0.0)
             n = int(common.sum())
             if 3 * n > 6:
-                samples.append(float(np.nansum(W[:, None] * residual * residual)) / (3 * n - 6))
+                terms = W[common] * np.einsum("ij,ij->i", residual[common], residual[common])
+                samples.append(float(np.minimum(terms, self._term_cap).sum()) / (3 * n - 6))
             last = self._last_residuals
             if last is not None:
                 both = common & np.isfinite(last).all(axis=1)
@@ -146,7 +160,8 @@ class CovarianceCalibration:
         """Track the a-posteriori variance of unit weight of the body fit and the frame-to-frame
         correlation of its residuals.
 
-        ``sum(r_i' R_i^-1 r_i) / (3n - 6)`` over the posterior residuals ``r_i = z_i - T p_i`` of
+        ``sum(min(r_i' R_i^-1 r_i, c)) / (3n - 6)`` (``c``: the cap of the module docstring) over
+        the posterior residuals ``r_i = z_i - T p_i`` of
         the ``used`` landmarks (indices into the 21 rows; ``residual`` (n, 3), their ``d2``
         (n,) ``= r_i' R_i^-1 r_i`` and ``W`` (n, 3, 3) ``= R_i^-1``, from
         :func:`fit_residuals`) estimates how far the filter's covariances are off from
@@ -160,7 +175,7 @@ class CovarianceCalibration:
         if n * 3 <= 6:
             self._last_residuals = None
             return
-        sample = float(d2.sum()) / (3 * n - 6)
+        sample = float(np.minimum(d2, self._term_cap).sum()) / (3 * n - 6)
         if not math.isfinite(sample) or sample <= 0.0:
             return
         a = self._cfg.variance_factor_smoothing

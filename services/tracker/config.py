@@ -165,6 +165,10 @@ class TrackerConfig:
     # fit (1 when the noise model is right) and by the residual-correlation factor.
     calibrate_covariance: bool = True
     variance_factor_smoothing: float = 0.1  # per-frame EMA weight of the variance factor
+    # Bound of the variance factor: each landmark's squared standardised residual enters it at
+    # most as the 3-dof chi-square quantile of this many sigmas (3: 14.16), so the variance of
+    # unit weight is at most that quantile / 2 (CovarianceCalibration; docs/estimation.md).
+    variance_factor_residual_sigmas: float = 3.0
     # Upper bound of the published covariance's inflation for frame-to-frame error correlation,
     # (1 + rho) / (1 - rho) (1 = no inflation; HandTracker.correlation_factor).
     max_correlation_factor: float = 30.0
@@ -301,6 +305,9 @@ class TrackerConfig:
             raise ValueError(f"articulation_std_rad must be >= 0, got {self.articulation_std_rad}")
         if self.template_memory_frames < 0 or self.template_candidate_frames < 0:
             raise ValueError("template_memory_frames and template_candidate_frames must be >= 0")
+        if not 0.0 < self.variance_factor_residual_sigmas < float("inf"):
+            raise ValueError("variance_factor_residual_sigmas must be a finite number > 0, got "
+                             f"{self.variance_factor_residual_sigmas!r}")
         if not 0.0 < self.variance_factor_smoothing <= 1.0:
             raise ValueError("variance_factor_smoothing must be in (0, 1], got "
                              f"{self.variance_factor_smoothing}")

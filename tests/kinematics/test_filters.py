@@ -436,14 +436,15 @@ def test_history_errors_vanish_for_the_true_hypothesis() -> None:
         trace = Rf[:, 0] + Rf[:, 4] + Rf[:, 8]
         if isinstance(f, RevoluteJoint):
             e_t, e_r = f.history_errors(d, Rf, trace, qs, c0)
-        else:
-            e_t, e_r = f.history_errors(d, Rf, trace, qs)
+        else:  # the prismatic rotation error is rigid's: beyond the rigid test (inside here)
+            e_t, e_r = f.history_errors(d, qs, np.full(len(qs), 3.0), 2.5)
         np.testing.assert_allclose(e_t, 0.0, atol=1e-12)
         np.testing.assert_allclose(e_r, 0.0, atol=2e-7)  # arccos near 1
-    e_t, e_r = RigidJoint.history_errors(np.zeros((2, 3)), np.tile(np.eye(3).ravel(), (2, 1)),
-                                         np.full(2, 3.0))
-    np.testing.assert_array_equal(e_t, 0.0)
-    np.testing.assert_array_equal(e_r, 0.0)
+    # Rigid: deltas within the rigid test have no error; beyond it, the excess in sigmas.
+    e_t, e_r = RigidJoint.history_errors(np.array([0.0, 6.0, 25.0]), np.array([1.0, 49.0, 0.0]),
+                                         2.5)
+    np.testing.assert_allclose(e_t, [0.0, 0.0, 2.5])
+    np.testing.assert_allclose(e_r, [0.0, 4.5, 0.0])
 
 
 def test_snapshot_state_round_trip() -> None:
@@ -460,3 +461,15 @@ def test_snapshot_state_round_trip() -> None:
         np.testing.assert_array_equal(f.P, g2.P)
         np.testing.assert_array_equal(f.u, g2.u)
         assert f.q == g2.q
+
+
+def test_mahalanobis2_3_matches_a_linear_solve() -> None:
+    from services.kinematics.filters.geometry import mahalanobis2_3
+
+    rng = np.random.default_rng(21)
+    for _ in range(20):
+        A = rng.normal(size=(3, 3))
+        S = A @ A.T + 1e-3 * np.eye(3)
+        v = rng.normal(size=3)
+        assert mahalanobis2_3(v, S) == pytest.approx(float(v @ np.linalg.solve(S, v)), rel=1e-9)
+    assert mahalanobis2_3(np.ones(3), np.diag([1.0, 0.0, 1.0])) == math.inf  # not definite

@@ -514,6 +514,8 @@ def test_a_far_stamp_is_not_carried_across_a_restart(procs: Processes, router: s
         client_bus.put(KEYS.hand_body, b.to_msgpack())
     client_bus.put(KEYS.hand_body, dataclasses.replace(bodies[30], stamp_ns=2**63 - 1).to_msgpack())
     wait_until(lambda: _stats(client_bus)["received"] == 31, 20, what="31 bodies received")
+    # "received" counts on arrival, the refusal is counted once the loop has handled the body
+    wait_until(lambda: _stats(client_bus)["rejected"] != {}, 20, what="the far body handled")
     assert _stats(client_bus)["rejected"] == {"far_future": 1}
     wait_until(lambda: _model(client_bus).updates == 30, 20, what="30 updates")
     # the writer thread saves off the update path: kill only once the file holds all 30

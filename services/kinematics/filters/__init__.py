@@ -32,6 +32,7 @@ last innovation ``y`` and its covariance ``S``, scores its hypothesis on history
 from services.kinematics.filters.disconnected import DISCONNECTED_COVARIANCE, DisconnectedJoint
 from services.kinematics.filters.geometry import (
     axis_basis_change,
+    excess_sigmas,
     inflated_noise,
     prismatic_noise_inflation,
     prismatic_twist_jacobian,
@@ -58,6 +59,7 @@ __all__ = [
     "RevoluteJoint",
     "RigidJoint",
     "axis_basis_change",
+    "excess_sigmas",
     "inflated_noise",
     "prismatic_noise_inflation",
     "prismatic_twist_jacobian",

@@ -135,6 +135,39 @@ def rotation_angles_from_trace(trace: Array) -> Array:
     return np.arccos(np.clip(0.5 * (trace - 1.0), -1.0, 1.0))
 
 
+def mahalanobis2_3(v: Array, S: Array) -> float:
+    """``v^T S^-1 v`` for a 3-vector and a symmetric 3x3 ``S`` (Cholesky on floats, the
+    per-frame tests' kernel); infinite when ``S`` is not positive definite (nothing is inside a
+    degenerate ellipsoid)."""
+    (a, b, c), (_, d, e), (_, _, f) = S.tolist()
+    x0, x1, x2 = v.tolist()
+    if a <= 0.0:
+        return math.inf
+    l00 = math.sqrt(a)
+    l10, l20 = b / l00, c / l00
+    t = d - l10 * l10
+    if t <= 0.0:
+        return math.inf
+    l11 = math.sqrt(t)
+    l21 = (e - l20 * l10) / l11
+    t = f - l20 * l20 - l21 * l21
+    if t <= 0.0:
+        return math.inf
+    l22 = math.sqrt(t)
+    y0 = x0 / l00  # solve L y = v; v^T S^-1 v = |y|^2
+    y1 = (x1 - l10 * y0) / l11
+    y2 = (x2 - l20 * y0 - l21 * y1) / l22
+    return y0 * y0 + y1 * y1 + y2 * y2
+
+
+def excess_sigmas(mahalanobis2: Array, sigmas: float) -> Array:
+    """By how many sigmas a deviation lies beyond the rigid test (docs/estimation.md#rigid-test):
+    ``max(0, sqrt(mahalanobis2) - sigmas)``, with ``mahalanobis2`` (m,) its ``e^T Sigma^-1 e``
+    against its published covariance. 0 inside the ``sigmas``-sigma ellipsoid."""
+    out: Array = np.maximum(np.sqrt(np.maximum(mahalanobis2, 0.0)) - sigmas, 0.0)
+    return out
+
+
 # --------------------------------------------------------------------------------------------
 # Joint models
 # --------------------------------------------------------------------------------------------

@@ -13,10 +13,10 @@ from services.kinematics.config import KinematicsConfig
 from services.kinematics.filters.geometry import (
     axis_basis,
     ekf_correct,
+    excess_sigmas,
     gaussian_log_density,
     prismatic_twist_jacobian,
     rotate_axis,
-    rotation_angles_from_trace,
     tangent_basis,
 )
 
@@ -174,16 +174,18 @@ class PrismaticJoint:
         T[:3, 3] = qv * self.u + self.o
         return T, 0.5 * (cov + cov.T)
 
-    def history_errors(self, d: Array, R_flat: Array, trace: Array,
-                       q: Array) -> tuple[Array, Array]:
-        """OMIP's model-selection errors of samples against this joint at the joint values ``q`` (m,).
+    def history_errors(self, d: Array, q: Array, d2_rotation: Array,
+                       sigmas: float) -> tuple[Array, Array]:
+        """Model-selection errors of samples against this joint at the joint values ``q`` (m,).
 
-        ``d`` (m,3) hand displacements [m]; ``R_flat`` (m,9), ``trace`` (m,) the delta rotations.
-        The hypothesis displaces the hand by ``o + q_j u`` without rotating it:
-        ``e_t = |d_j - o - q_j u|``, ``e_r = angle(R_j)``.
+        ``d`` (m,3) hand displacements [m]; ``d2_rotation`` (m,) the squared Mahalanobis
+        distances of the delta rotations' rotation vectors. The hypothesis displaces the hand by
+        ``o + q_j u`` without rotating it: ``e_t = |d_j - o - q_j u|`` [m] (a fitted prediction:
+        the whole residual counts) and, for the rotation, the same prediction as rigid's, so the
+        same error: by how many sigmas it exceeds the rigid test (docs/estimation.md#rigid-test).
         """
         r = d - self.o - q[:, None] * self.u
-        return np.sqrt(np.einsum("ij,ij->i", r, r)), rotation_angles_from_trace(trace)
+        return np.sqrt(np.einsum("ij,ij->i", r, r)), excess_sigmas(d2_rotation, sigmas)
 
     # ---------------------------------------------------------------------------- snapshot
 

@@ -9,8 +9,8 @@ from numpy.typing import NDArray
 
 from services.common.snapshot import SnapshotReader
 from services.kinematics.filters.geometry import (
+    excess_sigmas,
     gaussian_log_density,
-    rotation_angles_from_trace,
     se3_log_fast,
 )
 
@@ -53,14 +53,18 @@ class RigidJoint:
         return np.eye(4), np.zeros((6, 6))
 
     @staticmethod
-    def history_errors(d: Array, R_flat: Array, trace: Array,
-                       q: Array | None = None) -> tuple[Array, Array]:
-        """OMIP's selection errors of samples against "no motion": ``e_t = |d_j|``, ``e_r = angle(R_j)``.
+    def history_errors(d2_translation: Array, d2_rotation: Array,
+                       sigmas: float) -> tuple[Array, Array]:
+        """Model-selection errors of samples against "no motion" (the rigid test,
+        docs/estimation.md#rigid-test): by how many sigmas the hand displacement and the rotation
+        of each delta exceed ``sigmas`` sigmas of their published covariance,
+        ``max(0, sqrt(d2) - sigmas)`` (:func:`~services.kinematics.filters.excess_sigmas`).
 
-        ``d`` (m,3) hand displacements from the reference [m], ``R_flat`` (m,9) the delta
-        rotations row-major, ``trace`` (m,) their traces.
+        ``d2_translation``, ``d2_rotation`` (m,): the squared Mahalanobis distances of the
+        displacement and of the rotation vector. Rigid predicts the measurement exactly, so its
+        error is the measurement noise, measured in the published covariance's own units.
         """
-        return np.sqrt(np.einsum("ij,ij->i", d, d)), rotation_angles_from_trace(trace)
+        return excess_sigmas(d2_translation, sigmas), excess_sigmas(d2_rotation, sigmas)
 
     def to_state(self) -> dict[str, Any]:
         """The complete filter state (arrays copied) for snapshots."""
