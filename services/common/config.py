@@ -35,6 +35,7 @@ SECTIONS: dict[str, str] = {
     "stamps": "services.common.stamps:StampLimits",
     "tracker": "services.tracker.config:TrackerConfig",
     "kinematics": "services.kinematics.config:KinematicsConfig",
+    "segmentation": "services.kinematics.contact:SegmentationConfig",
     "detector": "services.detector.config:DetectorConfig",
     "robot_bridge": "services.robot_bridge.config:RobotBridgeConfig",
 }

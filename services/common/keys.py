@@ -48,6 +48,11 @@ class Keys:
         return f"{self.root}/kinematics/model"
 
     @property
+    def kinematics_models(self) -> str:
+        """Every contact phase's model of the current demonstration (``KinematicModelList``)."""
+        return f"{self.root}/kinematics/models"
+
+    @property
     def robot_state(self) -> str:
         return f"{self.root}/robot/state"
 

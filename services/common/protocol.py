@@ -32,6 +32,7 @@ PROTOCOL_MAJOR = 1
 FRAME_IDS = ("camera", "world")
 JOINT_TYPES = ("rigid", "prismatic", "revolute", "disconnected")
 MODEL_TYPES = (*JOINT_TYPES, "unknown")
+PHASES = ("contact", "free")  # KinematicModel.phase: what the hand does at stamp_ns
 MOTION_MODELS = ("static", "constant_velocity", "kinematic")
 ROBOT_MODES = ("idle", "articulating", "fault")
 NUM_LANDMARKS = 21
@@ -332,6 +333,11 @@ def _array_from_lists(value: list[Any], dtype: str, path: str) -> NDArray[Any]:
     if a.size > _MAX_ELEMENTS:
         raise ProtocolError(f"{path}: more than {_MAX_ELEMENTS} elements")
     return a
+
+
+def _optional_int(f: _Fields, key: str, minimum: int) -> int | None:
+    """An int field that may be absent or nil (None then)."""
+    return None if f.obj.get(key) is None else f.int(key, minimum)
 
 
 def _all_finite(a: NDArray[Any]) -> bool:
@@ -714,7 +720,14 @@ class KinematicModel(Message):
     too. ``stamp_ns`` is that of the last hand body absorbed; ``updates`` 0 is the empty model,
     before any (docs/protocol.md). The hand pose at joint value q is
     ``Exp(q * screw) @ reference_pose``, screw ``(axis, 0)`` or ``(point x axis, axis)``
-    (:mod:`services.kinematics.prediction`)."""
+    (:mod:`services.kinematics.prediction`).
+
+    Contact phases (docs/protocol.md#contact-phases): ``segment`` is the index of the contact
+    phase the estimate describes within the demonstration, ``segment_start_ns`` /
+    ``segment_end_ns`` the stamps of its first and last frame (None before the first phase /
+    while it is open), ``phase`` ("contact" or "free") what the hand does at ``stamp_ns`` (None:
+    the producer does not segment), ``first_segment`` the phase whose estimate a re-grasp of the
+    same joint continues (None: this phase's own)."""
 
     SCHEMA: ClassVar[str] = "handkse.KinematicModel/1"
     type: str
@@ -723,10 +736,15 @@ class KinematicModel(Message):
     revolute: RevoluteParams | None = None
     reference_pose: NDArray[np.float64] = field(default_factory=lambda: np.eye(4))
     updates: int = 0
+    segment: int = 0
+    segment_start_ns: int | None = None
+    segment_end_ns: int | None = None
+    phase: str | None = None
+    first_segment: int | None = None
 
     def _fields(self) -> dict[str, Any]:
         p, r = self.prismatic, self.revolute
-        return {
+        out: dict[str, Any] = {
             "type": self.type,
             "probabilities": {k: float(self.probabilities[k]) for k in JOINT_TYPES},
             "prismatic": None if p is None else {"axis": p.axis, "q": float(p.q),
@@ -736,7 +754,12 @@ class KinematicModel(Message):
                                                 "covariance": r.covariance},
             "reference_pose": self.reference_pose,
             "updates": self.updates,
+            "segment": self.segment,
         }
+        for key in ("segment_start_ns", "segment_end_ns", "phase", "first_segment"):
+            if (value := getattr(self, key)) is not None:
+                out[key] = value
+        return out
 
     @classmethod
     def _parse(cls, f: _Fields, envelope: dict[str, Any]) -> KinematicModel:
@@ -767,9 +790,41 @@ class KinematicModel(Message):
             raise ProtocolError(f"{f.path}.prismatic: type is prismatic but parameters are nil")
         if model_type == "revolute" and revolute is None:
             raise ProtocolError(f"{f.path}.revolute: type is revolute but parameters are nil")
+        segment = 0 if f.obj.get("segment") is None else f.int("segment", 0)
+        start = _optional_int(f, "segment_start_ns", 0)
+        end = _optional_int(f, "segment_end_ns", 0)
+        if end is not None and (start is None or end < start):
+            raise ProtocolError(f"{f.path}.segment_end_ns: {end} needs a segment_start_ns at or "
+                                f"before it, got {start}")
+        first = _optional_int(f, "first_segment", 0)
+        if first is not None and first > segment:
+            raise ProtocolError(f"{f.path}.first_segment: {first} is after segment {segment}")
+        phase = None if f.obj.get("phase") is None else f.str("phase", PHASES)
         return cls(**envelope, type=model_type, probabilities=probabilities,
                    prismatic=prismatic, revolute=revolute, reference_pose=reference,
-                   updates=f.int("updates", 0))
+                   updates=f.int("updates", 0), segment=segment, segment_start_ns=start,
+                   segment_end_ns=end, phase=phase, first_segment=first)
+
+
+@dataclass(frozen=True, kw_only=True, eq=False)
+class KinematicModelList(Message):
+    """Every contact phase's model of the current demonstration, oldest first
+    (``handkse/{rig}/kinematics/models``; docs/protocol.md#contact-phases)."""
+
+    SCHEMA: ClassVar[str] = "handkse.KinematicModelList/1"
+    models: tuple[KinematicModel, ...] = ()
+
+    def _fields(self) -> dict[str, Any]:
+        return {"models": [m.to_dict() for m in self.models]}
+
+    @classmethod
+    def _parse(cls, f: _Fields, envelope: dict[str, Any]) -> KinematicModelList:
+        raw = f._get("models")
+        if not isinstance(raw, list):
+            raise ProtocolError(f"{f.path}.models: expected a list, got {type(raw).__name__}")
+        return cls(**envelope, models=tuple(
+            KinematicModel.from_obj(m, f"{f.path}.models[{i}]", f.lists)
+            for i, m in enumerate(raw)))
 
 
 # --- Robot ---
@@ -817,7 +872,9 @@ class ArticulateRequest(Message):
     """Ask the robot bridge to articulate: ``amount`` rad (revolute) or m (prismatic).
 
     ``timeout_s`` (optional): how long the caller waits for the result (its query timeout); the
-    bridge starts nothing it could not answer within it (docs/protocol.md).
+    bridge starts nothing it could not answer within it (docs/protocol.md). ``segment``
+    (optional): the contact phase whose model to articulate (``KinematicModel.segment``; absent:
+    the latest with a verdict).
     """
 
     SCHEMA: ClassVar[str] = "handkse.ArticulateRequest/1"
@@ -827,6 +884,7 @@ class ArticulateRequest(Message):
     model: KinematicModel | None = None
     dry_run: bool = False
     timeout_s: float | None = None
+    segment: int | None = None
 
     def _fields(self) -> dict[str, Any]:
         d: dict[str, Any] = {"amount": self.amount, "duration_s": self.duration_s,
@@ -835,6 +893,8 @@ class ArticulateRequest(Message):
             d["model"] = self.model.to_dict()
         if self.timeout_s is not None:
             d["timeout_s"] = self.timeout_s
+        if self.segment is not None:
+            d["segment"] = self.segment
         return d
 
     @classmethod
@@ -846,7 +906,8 @@ class ArticulateRequest(Message):
         return cls(**envelope, amount=f.float("amount"),
                    duration_s=f.float("duration_s", 1e-3, 3600.0),
                    force_limit_n=f.float("force_limit_n", 1e-3, 1e4, default=70.0),
-                   model=model, dry_run=f.bool("dry_run", default=False), timeout_s=timeout)
+                   model=model, dry_run=f.bool("dry_run", default=False), timeout_s=timeout,
+                   segment=_optional_int(f, "segment", 0))
 
 
 @dataclass(frozen=True, kw_only=True, eq=False)
@@ -1002,5 +1063,6 @@ class ServiceStats(Message):
 
 
 MESSAGE_TYPES: tuple[type[Message], ...] = (RgbdFrame, HandLandmarks, HandBody, KinematicModel,
+                                            KinematicModelList,
                                             RobotState, ArticulateRequest, ArticulateResult,
                                             Ack, ServiceStats)

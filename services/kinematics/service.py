@@ -2,7 +2,12 @@
 
 Subscribes ``handkse/{rig}/hand/body``, publishes ``handkse/{rig}/kinematics/model`` after every
 accepted update (with its own ``seq``; the estimator's models carry 0), answers ``get`` on the
-same key (msgpack, or JSON with ``?format=json``), and restarts the demonstration on ``reset``.
+same key (msgpack, or JSON with ``?format=json``) and on ``handkse/{rig}/kinematics/models``
+(``KinematicModelList``: every contact phase's model), and restarts the demonstration on
+``reset``. The estimate is segmented into contact phases (:mod:`services.kinematics.segments`,
+docs/estimation.md#contact-phases): the published model is the open phase's while the hand is in
+contact, else the latest phase with a verdict, which is also what ``get`` answers. A body of a new
+``body_epoch`` (a new body frame of the tracker) restarts the open phase's estimate.
 A reset publishes nothing: the next model is the one of the first hand body of the new
 demonstration; until then ``get`` answers the empty model (``updates`` 0, ``stamp_ns`` 0, type
 unknown), as at a first start (docs/protocol.md). A rejected hand body is counted under the
@@ -12,9 +17,10 @@ far ahead of the stream or of the receive clock, :mod:`services.common.stamps`),
 estimator's reason (:data:`~services.kinematics.estimator.RejectReason`, ``outlier`` among them).
 After every update the estimator's state is written atomically (temporary file + rename, by a
 writer thread off the update path) to the state file and restored at start, so a killed and
-restarted service continues the demonstration where it was. A state file that does not hold a
-valid estimate (any field of the wrong type, shape or range, NaN, an unknown frame, a stamp far
-ahead of the clock) is ignored with a warning naming the problem: the service starts fresh.
+restarted service continues the demonstration where it was, every closed contact phase
+included. A state file that does not hold a valid estimate (any field of the wrong type, shape
+or range, NaN, an unknown frame, a stamp far ahead of the clock) is ignored with a warning naming
+the problem: the service starts fresh.
 """
 
 from __future__ import annotations
@@ -31,42 +37,47 @@ from pathlib import Path
 from services.common.bus import JSON, Bus, QueryAnswer, QueryRequest, options_from_args
 from services.common.config import section_from_args
 from services.common.keys import Keys
-from services.common.protocol import HandBody, KinematicModel
+from services.common.protocol import HandBody, KinematicModel, KinematicModelList
 from services.common.service import BusLike, Service, ServiceLimits, stop_on_signals
 from services.common.stamps import StampLimits, StampWindow
 from services.common.state_file import StateFile
 from services.kinematics.config import KinematicsConfig
-from services.kinematics.estimator import KinematicEstimator
+from services.kinematics.contact import SegmentationConfig
+from services.kinematics.segments import SegmentedEstimator, verdict_of
 
 log = logging.getLogger(__name__)
 
-SNAPSHOT_VERSION = 2
+SNAPSHOT_VERSION = 3
 
 
 class KinematicsNode:
-    """Binds a :class:`KinematicEstimator` to the bus through a :class:`Service`.
+    """Binds a :class:`SegmentedEstimator` to the bus through a :class:`Service`.
 
     ``clock``: the receive clock (wall clock, ns) that stamps are compared with.
     """
 
     def __init__(self, service: Service, config: KinematicsConfig,
                  state_file: Path | None = None, stamp_limits: StampLimits | None = None,
-                 clock: Callable[[], int] = time.time_ns) -> None:
+                 clock: Callable[[], int] = time.time_ns,
+                 segmentation: SegmentationConfig | None = None) -> None:
         self.service = service
         self.config = config
+        self.segmentation = SegmentationConfig() if segmentation is None else segmentation
         self.stamp_limits = StampLimits() if stamp_limits is None else stamp_limits
         self.clock = clock
         self.state_file = StateFile(state_file, SNAPSHOT_VERSION)
-        self.estimator, self.stamps = self._restore() or (KinematicEstimator(config),
-                                                          StampWindow(self.stamp_limits))
+        self.estimator, self.stamps = self._restore() or (
+            SegmentedEstimator(config, self.segmentation), StampWindow(self.stamp_limits))
         self._latest = self.estimator.model
+        self._closed = self.estimator.closed
         self._lock = threading.Lock()
         keys = service.keys
         service.subscribe(keys.hand_body, HandBody, self.on_body)
         service.bus.declare_queryable(keys.kinematics_model, self.answer_model)
+        service.bus.declare_queryable(keys.kinematics_models, self.answer_models)
         service.on_reset(self.reset)
 
-    def _restore(self) -> tuple[KinematicEstimator, StampWindow] | None:
+    def _restore(self) -> tuple[SegmentedEstimator, StampWindow] | None:
         """The estimator and stamp window of the state file, or None (absent, or not valid)."""
         try:
             doc = self.state_file.load()
@@ -75,7 +86,8 @@ class KinematicsNode:
             if not isinstance(doc, dict) or set(doc) != {"estimator", "stamps"}:
                 raise ValueError(f"expected the keys estimator and stamps, got {sorted(doc)}")
             now = self.clock()
-            estimator = KinematicEstimator.from_snapshot(doc["estimator"], self.config)
+            estimator = SegmentedEstimator.from_snapshot(doc["estimator"], self.config,
+                                                         self.segmentation)
             stamps = StampWindow.from_state(doc["stamps"], self.stamp_limits, now)
             last = estimator.last_stamp_ns
             problem = None if last is None else stamps.lead_problem(last, now)
@@ -86,8 +98,8 @@ class KinematicsNode:
                         "starting a new demonstration", self.state_file.path,
                         type(exc).__name__, exc)
             return None
-        log.info("restored kinematics state from %s (%d updates)", self.state_file.path,
-                 estimator.model.updates)
+        log.info("restored kinematics state from %s (%d closed contact phases, %d updates)",
+                 self.state_file.path, len(estimator.closed), estimator.model.updates)
         return estimator, stamps
 
     def _save(self) -> None:
@@ -98,21 +110,23 @@ class KinematicsNode:
         if not body.initialized:
             return  # the tracker has no hand pose yet; nothing to learn from
         if body.frame_id != self.estimator.frame_id:
-            if self.estimator.model.updates > 0:
+            if self.estimator.last_stamp_ns is not None:
                 # a demonstration is estimated in one frame; a body in another cannot continue
                 # it (and must not end it): refused until a reset starts a new one
                 self.service.reject("frame_changed", f"hand body at {body.stamp_ns} ns in "
                                     f"{body.frame_id!r}, the demonstration is in "
                                     f"{self.estimator.frame_id!r} (reset to start a new one)")
                 return
-            self.estimator = KinematicEstimator(self.config, frame_id=body.frame_id)
+            self.estimator = SegmentedEstimator(self.config, self.segmentation,
+                                                frame_id=body.frame_id)
         received = self.clock()
         far = self.stamps.check(body.stamp_ns, received)
         if far is not None:
             self.service.reject("far_future", f"hand body: {far}")
             return
         with self.service.latency.measure("update"):
-            result = self.estimator.update(body.stamp_ns, body.pose, body.covariance[:6, :6])
+            result = self.estimator.update(body.stamp_ns, body.pose, body.covariance[:6, :6],
+                                           body.landmarks.points, body.body_epoch)
         if result.reason is not None:
             detail = f": {result.note}" if result.note else ""
             self.service.reject(result.reason, f"hand body at {body.stamp_ns} ns{detail}")
@@ -127,8 +141,10 @@ class KinematicsNode:
     def _publish(self, model: KinematicModel) -> None:
         keys = self.service.keys
         message = replace(model, seq=self.service.next_seq(keys.kinematics_model))
+        closed = self.estimator.closed
         with self._lock:
             self._latest = message
+            self._closed = closed
         self.service.publish(keys.kinematics_model, message)
 
     def reset(self) -> None:
@@ -138,22 +154,43 @@ class KinematicsNode:
         self.stamps.forget()
         with self._lock:
             self._latest = self.estimator.model
+            self._closed = ()
         self._save()
 
     def answer_model(self, request: QueryRequest) -> QueryAnswer:
-        """Runs on a bus thread: reads only the latest immutable message."""
+        """The model of the latest contact phase with a verdict (:func:`verdict_of`), with the
+        latest message's envelope. Runs on a bus thread: reads only immutable messages."""
         with self._lock:
-            message = self._latest
-        if request.parameters.get("format") == "json":
-            return QueryAnswer(json.dumps(message.to_json_obj()).encode(), JSON)
-        return QueryAnswer(message.to_msgpack())
+            message, closed = self._latest, self._closed
+        return _answer(verdict_of(closed, message), request)
+
+    def answer_models(self, request: QueryRequest) -> QueryAnswer:
+        """``KinematicModelList``: every contact phase's model, oldest first, each with the
+        latest message's stamp and phase (the open phase's is the latest message). Runs on a bus
+        thread: reads only immutable messages."""
+        with self._lock:
+            latest, closed = self._latest, self._closed
+        models = [replace(m, stamp_ns=latest.stamp_ns, phase=latest.phase) for m in closed]
+        if latest.phase == "contact" and latest.segment == len(closed):
+            models.append(latest)
+        return _answer(KinematicModelList(seq=latest.seq, stamp_ns=latest.stamp_ns,
+                                          frame_id=latest.frame_id, models=tuple(models)),
+                       request)
+
+
+def _answer(message: KinematicModel | KinematicModelList, request: QueryRequest) -> QueryAnswer:
+    """msgpack, or UTF-8 JSON with the selector parameter ``format=json``."""
+    if request.parameters.get("format") == "json":
+        return QueryAnswer(json.dumps(message.to_json_obj()).encode(), JSON)
+    return QueryAnswer(message.to_msgpack())
 
 
 def run(bus: BusLike, keys: Keys, config: KinematicsConfig, stop: threading.Event,
         state_file: Path | None = None, stamp_limits: StampLimits | None = None,
-        limits: ServiceLimits | None = None) -> None:
+        limits: ServiceLimits | None = None,
+        segmentation: SegmentationConfig | None = None) -> None:
     service = Service("kinematics", bus, keys, limits)
-    node = KinematicsNode(service, config, state_file, stamp_limits)
+    node = KinematicsNode(service, config, state_file, stamp_limits, segmentation=segmentation)
     service.run(stop)
     node.state_file.flush()
 
@@ -173,5 +210,5 @@ def main(args: argparse.Namespace) -> int:
     with Bus(options_from_args(args, base)) as bus:
         print("kinematics ready", flush=True)
         run(bus, Keys(args.rig), config, stop, args.state_file, stamp_limits,
-            section_from_args(args, "limits"))
+            section_from_args(args, "limits"), section_from_args(args, "segmentation"))
     return 0

@@ -17,6 +17,8 @@ Reasons are short stable labels (they end up in ``ArticulateResult.reason``):
                        the kinematics service cannot be asked and the last model received from
                        it is older than ``max_cached_model_age_s`` (see :func:`check_cached_model`)
 ``no_model``           no model was given and none could be obtained from the kinematics service
+``no_segment``         the request names a contact phase the demonstration does not have
+``open_segment``       the request names a contact phase that is still open (the hand holds it)
 ``invalid_request``    amount zero/non-finite, or a duration that is too short
 ``too_fast``           the planned peak Cartesian speed exceeds the configured limit
 ``workspace``          the planned path leaves the reachable workspace
@@ -37,6 +39,7 @@ Reasons are short stable labels (they end up in ``ArticulateResult.reason``):
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -275,3 +278,18 @@ class SaturationWatch:
                            f"joint torque demand above Franka's limits for {self.ticks} ticks: "
                            "the arm cannot follow the model (check its axis)")
         return None
+
+
+def choose_segment(models: Sequence[KinematicModel], segment: int) -> KinematicModel | Refusal:
+    """The model of contact phase ``segment`` from a ``KinematicModelList``'s ``models``, or why
+    not: ``no_segment`` (no such phase), ``open_segment`` (still open: its estimate is not
+    final). Whether its verdict can be articulated is :func:`check_model`'s."""
+    for model in models:
+        if model.segment == segment:
+            if model.segment_end_ns is None:
+                return Refusal("open_segment", f"contact phase {segment} is still open (the hand "
+                                               "holds it): wait for the release")
+            return model
+    known = ", ".join(str(m.segment) for m in models) or "none"
+    return Refusal("no_segment", f"the demonstration has no contact phase {segment} (phases: "
+                                 f"{known})")

@@ -61,6 +61,7 @@ from services.common.protocol import (
     ArticulateRequest,
     ArticulateResult,
     KinematicModel,
+    KinematicModelList,
     ProtocolError,
     RobotState,
 )
@@ -72,12 +73,14 @@ from services.robot_bridge.config import RobotBridgeConfig, config_from_args
 from services.robot_bridge.executor import Bridge
 from services.robot_bridge.factory import configured_backend
 from services.robot_bridge.refinement import robot_body
-from services.robot_bridge.safety import Refusal, check_cached_model
+from services.robot_bridge.safety import Refusal, check_cached_model, choose_segment
 from services.robot_bridge.trajectory import ArticulationPlan
 
 log = logging.getLogger(__name__)
 
 ModelFetcher = Callable[[], KinematicModel | None]
+# every contact phase's model (``kinematics/models``), for a request that names a segment
+ModelListFetcher = Callable[[], tuple[KinematicModel, ...]]
 # Time kept between the end of the planned motion and the caller's deadline, for the result
 # to be sent and delivered [s].
 REPLY_MARGIN_S = 0.5
@@ -104,12 +107,14 @@ class RobotBridgeNode:
 
     def __init__(self, service: Service, backend: RobotBackend, config: RobotBridgeConfig,
                  fetch_model: ModelFetcher | None = None,
-                 clock: Callable[[], float] = time.monotonic) -> None:
+                 clock: Callable[[], float] = time.monotonic,
+                 fetch_models: ModelListFetcher | None = None) -> None:
         self.service = service
         self.backend = backend
         self.config = config
         self.bridge = Bridge(backend, config)
         self.fetch_model = fetch_model
+        self.fetch_models = fetch_models
         self.clock = clock
         self._target: np.ndarray | None = None  # the pose commanded at the last tick
         self.mode = "idle"
@@ -243,7 +248,8 @@ class RobotBridgeNode:
         request = job.request
         # The deadline is checked last (the gate), so that a request is told first what is
         # wrong with it or its model; a caller gone meanwhile costs at most the model query.
-        model = request.model or self._model_from_service()
+        model = request.model or (self._model_from_service() if request.segment is None
+                                  else self._segment_from_service(request.segment))
         if isinstance(model, Refusal):
             return self._refused(model)
         self._pace = None
@@ -311,6 +317,19 @@ class RobotBridgeNode:
         assert latest is not None
         log.warning("%s; using the last model received %.1f s ago", why, age)
         return latest
+
+    def _segment_from_service(self, segment: int) -> KinematicModel | Refusal:
+        """Contact phase ``segment``'s model from the kinematics service's ``kinematics/models``
+        (:func:`~services.robot_bridge.safety.choose_segment`), or a refusal saying why."""
+        if self.fetch_models is None:
+            return Refusal("no_model", f"contact phase {segment} was asked for, but no "
+                                       "kinematics/models query is configured")
+        try:
+            models = self.fetch_models()
+        except (UntrustedReply, BusError, ProtocolError) as exc:
+            return Refusal("no_model", f"the kinematics service's contact phases could not be "
+                                       f"asked ({exc}): try again, or send a model")
+        return choose_segment(models, segment)
 
     def _on_tick(self, state: BackendState, moving: bool,
                  target: np.ndarray | None = None) -> None:
@@ -401,6 +420,26 @@ def kinematics_model_fetcher(bus: QueryBus, keys: Keys, timeout_s: float,
     return fetch
 
 
+def kinematics_models_fetcher(bus: QueryBus, keys: Keys, timeout_s: float,
+                              reject: Callable[[str, str], None]) -> ModelListFetcher:
+    """Ask the kinematics service for every contact phase's model (``KinematicModelList``);
+    replies from any other session are set aside, as for :func:`kinematics_model_fetcher`."""
+
+    def fetch() -> tuple[KinematicModel, ...]:
+        try:
+            answer = ask_service(bus, keys, "kinematics", keys.kinematics_models,
+                                 timeout=timeout_s)
+        except UntrustedReply as exc:
+            _report(exc.untrusted, reject)
+            if isinstance(exc, AmbiguousReply):
+                reject("ambiguous_reply", str(exc))
+            raise
+        _report(answer.untrusted, reject)
+        return KinematicModelList.from_msgpack(answer.reply.payload).models
+
+    return fetch
+
+
 def _report(untrusted: tuple[Reply, ...], reject: Callable[[str, str], None]) -> None:
     for reply in untrusted:
         reject("untrusted_reply", f"model reply on {reply.key} from session {reply.replier}, "
@@ -415,10 +454,14 @@ def run(bus: BusLike, keys: Keys, config: RobotBridgeConfig, backend: RobotBacke
     (:func:`kinematics_model_fetcher`).
     """
     service = Service("robot_bridge", bus, keys)
+    fetch_models = None
+    if isinstance(bus, Bus):
+        fetch_models = kinematics_models_fetcher(bus, keys, config.model_query_timeout_s,
+                                                 service.reject)
     if fetch_model is None and isinstance(bus, Bus):
         fetch_model = kinematics_model_fetcher(bus, keys, config.model_query_timeout_s,
                                                service.reject)
-    node = RobotBridgeNode(service, backend, config, fetch_model)
+    node = RobotBridgeNode(service, backend, config, fetch_model, fetch_models=fetch_models)
     robot = threading.Thread(target=node.run_robot, args=(stop,), name="robot", daemon=True)
     robot.start()
     try:

@@ -32,6 +32,7 @@ from services.common.service import BusLike, Service, ServiceLimits, stop_on_sig
 from services.common.snapshot import SnapshotError
 from services.common.stamps import StampLimits, StampWindow
 from services.common.state_file import StateFile
+from services.kinematics.phase_watch import ContactPhaseWatch, predicts_hand
 from services.kinematics.prediction import predict_hand_pose
 from services.tracker.config import TrackerConfig
 from services.tracker.state import body_document, body_from_document
@@ -84,6 +85,7 @@ class TrackerNode:
         self.stamps = StampWindow(stamp_limits)
         self._label: str | None = None
         self.model: KinematicModel | None = None
+        self.phases = ContactPhaseWatch()
         self.state_file = StateFile(state_file, SNAPSHOT_VERSION)
         self._saved_stamp_ns: int | None = None
         self._restore()
@@ -93,10 +95,12 @@ class TrackerNode:
         service.on_reset(self.reset)
 
     def on_model(self, model: KinematicModel) -> None:
+        if self.phases.new_contact(model):
+            self.tracker.reset()  # a new hand body for the grasp (docs/estimation.md#contact-phases)
         self.model = model
 
     def _prior(self, stamp_ns: int) -> tuple[np.ndarray, np.ndarray] | None:
-        return None if self.model is None else predict_hand_pose(self.model, stamp_ns)
+        return predict_hand_pose(self.model, stamp_ns) if predicts_hand(self.model) else None  # type: ignore[arg-type]
 
     def on_landmarks(self, message: HandLandmarks) -> None:
         received = self.clock()
@@ -136,6 +140,7 @@ class TrackerNode:
         self.stamps.forget()
         self._label = None
         self.model = None
+        self.phases.reset()
         self._saved_stamp_ns = None
         self.state_file.save(body_document(None))
 

@@ -91,9 +91,10 @@ def test_a_regrasp_is_scored_per_contact_phase(settings: Settings) -> None:
     segs = result.segments
     assert [s.segment for s in segs] == list(range(len(demo.truth.segments))) == [0, 1]
     assert {s.method for s in segs} == {"ours"}  # the baselines fit once, at the end
-    assert all(s.source == "at_release" and s.type_true == "prismatic" for s in segs)
+    assert all(s.source == "segment" and s.type_true == "prismatic" for s in segs)
     assert all(0.0 <= s.tangent_error_deg <= 180.0 for s in segs)
-    assert result.phases == []  # the pipeline does not decide contact phases (yet)
+    # the pipeline decides contact phases (docs/estimation.md#contact-phases): they are scored
+    assert [p.method for p in result.phases] == ["ours"]
 
 
 def test_a_whole_demonstration_is_also_scored_cut_at_grasp_and_release(

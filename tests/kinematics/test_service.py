@@ -458,12 +458,14 @@ NAN_POSE = np.full((4, 4), np.nan)
 
 
 @pytest.mark.parametrize(("path", "value", "message"), [
-    ("estimator.updates", "many", "estimator.updates: expected an integer"),
-    ("estimator.reference_pose", NAN_POSE, "estimator.reference_pose: contains NaN"),
-    ("estimator.revolute.q", float("nan"), "estimator.revolute.q: nan is not finite"),
+    ("estimator.open.estimator.updates", "many", "estimator.updates: expected an integer"),
+    ("estimator.open.estimator.reference_pose", NAN_POSE,
+     "estimator.reference_pose: contains NaN"),
+    ("estimator.open.estimator.revolute.q", float("nan"),
+     "estimator.revolute.q: nan is not finite"),
     ("estimator.frame_id", "mars", "estimator.frame_id: expected one of"),
     ("estimator.last_stamp_ns", 2**63 - 1, "estimator.last_stamp_ns: stamp 9223372036854775807"),
-    ("estimator.selector", "history", "estimator.selector: expected a map"),
+    ("estimator.open.estimator.selector", "history", "estimator.selector: expected a map"),
     ("estimator", [1, 2, 3], "estimator: expected a map"),
     ("stamps.anchor", [2**63 - 1, 2**63 - 1], "stamps.anchor"),
     ("stamps.anchor", "yesterday", "stamps.anchor"),
@@ -491,16 +493,20 @@ def test_a_state_file_of_an_older_version_is_ignored(tmp_path: Path,
                                                      caplog: pytest.LogCaptureFixture) -> None:
     state = tmp_path / "kin.state"
     doc = _state_after(revolute_bodies(30), state)
-    StateFile(state, 1).save(doc)  # the version before stamps were kept
+    StateFile(state, 2).save(doc)  # the version before contact phases were kept
     with caplog.at_level(logging.WARNING):
         node = FakeKinematics(state_file=state)
-    assert "version 1, expected 2" in caplog.text
+    assert "version 2, expected 3" in caplog.text
     assert node.model().updates == 0
 
 
 def _saved_updates(path: Path) -> int | None:
+    """The updates of the open contact phase's estimate in the state file (the revolute bodies
+    carry no landmarks: one phase, open from the first body)."""
     doc = StateFile(path, STATE_VERSION).load() if path.exists() else None
-    return None if doc is None else int(doc["estimator"]["updates"])
+    if doc is None or doc["estimator"]["open"] is None:
+        return None
+    return int(doc["estimator"]["open"]["estimator"]["updates"])
 
 
 def test_a_far_stamp_is_not_carried_across_a_restart(procs: Processes, router: str,
@@ -537,8 +543,9 @@ def test_a_corrupt_state_file_does_not_stop_the_process(procs: Processes, router
     """A state file whose fields have the wrong type: the process warns, starts fresh, works."""
     state = tmp_path / "kin.state"
     doc = _state_after(revolute_bodies(30), state)
-    StateFile(state, STATE_VERSION).save(_with(_with(doc, "estimator.updates", "many"),
-                                               "estimator.revolute", "not a filter"))
+    StateFile(state, STATE_VERSION).save(_with(_with(doc, "estimator.open.estimator.updates",
+                                                     "many"),
+                                               "estimator.open.estimator.revolute", "not a filter"))
     kin = _start(procs, router, state, client_bus)
     assert kin.poll() is None
     assert "ignoring the state file" in output_of(kin)

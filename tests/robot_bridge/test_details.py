@@ -159,6 +159,13 @@ def _slow(rig: Rig, seconds: float, request: ArticulateRequest) -> ArticulateRes
     return rig.articulate(request)
 
 
+def _phases(rig: Rig, request: ArticulateRequest, end_ns: int | None) -> ArticulateResult:
+    """The kinematics service answers one contact phase, 0 (closed at ``end_ns``, or open)."""
+    rig.serve_models = lambda: (replace(_model(), segment=0, segment_start_ns=1,
+                                        segment_end_ns=end_ns),)
+    return rig.articulate(request)
+
+
 def _across_the_approach() -> KinematicModel:
     """Half a turn about TCP y, 5 cm behind the TCP: beyond the arm's joint ranges."""
     T0 = nominal_grasp_pose()
@@ -184,6 +191,9 @@ PRODUCERS: dict[str, Callable[[], ArticulateResult]] = {
         type="rigid", probabilities={**REVOLUTE, "revolute": 0.0, "rigid": 1.0})),
     "stale_model": lambda: _on_key(HALF_TURN, _model(stamp_ns=time.time_ns() - 10**15)),
     "no_model": lambda: _on_rig(lambda r: r.articulate(HALF_TURN)),  # kinematics unreachable
+    "no_segment": lambda: _on_rig(lambda r: _phases(r, replace(HALF_TURN, segment=4), end_ns=9)),
+    "open_segment": lambda: _on_rig(lambda r: _phases(r, replace(HALF_TURN, segment=0),
+                                                      end_ns=None)),
     "invalid_request": lambda: _on_key(replace(HALF_TURN, amount=0.0), _model()),
     "too_fast": lambda: _on_key(replace(HALF_TURN, duration_s=1.0), _model()),
     "workspace": lambda: _on_key(replace(HALF_TURN, duration_s=20.0), _far_axis()),

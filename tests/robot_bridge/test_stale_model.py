@@ -90,9 +90,11 @@ class Rig:
         self.clock = FakeClock()
         self.service = Service("robot_bridge", self.bus, KEYS)
         self.serve: Callable[[], KinematicModel | None] = self._unreachable
+        # what the kinematics/models query answers (every contact phase's model)
+        self.serve_models: Callable[[], tuple[KinematicModel, ...]] = lambda: ()
         self.fetches = 0
         self.node = RobotBridgeNode(self.service, make_backend(config), config, self._fetch,
-                                    clock=self.clock)
+                                    clock=self.clock, fetch_models=self._fetch_models)
         self.stop = threading.Event()
         self.threads = [threading.Thread(target=self.node.run_robot, args=(self.stop,),
                                          daemon=True),
@@ -108,6 +110,9 @@ class Rig:
     def _fetch(self) -> KinematicModel | None:
         self.fetches += 1
         return self.serve()
+
+    def _fetch_models(self) -> tuple[KinematicModel, ...]:
+        return self.serve_models()
 
     def publish_model(self, model: KinematicModel) -> None:
         """A model arriving on the kinematics model key (the subscription path)."""
