@@ -410,6 +410,10 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     p.add_argument("--seed", type=non_negative_int, default=0)
     p.add_argument("--rate", type=non_negative_float, default=1.0,
                    help="replay speed factor (default 1)")
+    p.add_argument("--variant", choices=VARIANTS, default="whole",
+                   help="the demonstration: whole (reach, grasp, manipulate, release, withdraw; "
+                        "default), cut (the manipulation only), sequence (two joints), regrasp "
+                        "(two strokes)")
     p.add_argument("--no-robot", action="store_true",
                    help="stop after the estimate (no robot bridge, no articulation)")
     p.add_argument("--view", action="store_true",

@@ -1,12 +1,14 @@
 """``handkse demo``: every service as its own process on loopback, one demonstration through them.
 
 Starts a Zenoh router, the tracker and the kinematics service as separate processes on a TCP
-loopback endpoint, replays a synthetic demonstration (default: the key, participant 3) in real
-time from this process, stamped with the wall clock as ``handkse replay`` does, prints live
-progress (type, probabilities, tangent error against the ground truth), then queries the final
-model with ``get`` and prints it beside the truth.
+loopback endpoint, replays a synthetic demonstration (default: the whole demonstration of the
+key by participant 3: reach, grasp, turn, release, withdraw) in real time from this process,
+stamped with the wall clock as ``handkse replay`` does, prints live progress (type,
+probabilities, tangent error against the ground truth) and each contact phase as the kinematics
+service detects it (:class:`PhasePrinter`), then queries the final model with ``get`` and prints
+it beside the truth, and the detected phases beside the true contact intervals.
 
-With the robot (the default), ``handkse robot-bridge --sim-object synthetic:OBJECT:P:SEED`` runs
+With the robot (the default), ``handkse robot-bridge --sim-object synthetic:OBJECT:P:SEED:VARIANT`` runs
 as one more process: its simulated Panda holds the demonstration's true object, placed through
 the bridge's camera calibration. The demo then asks it to articulate exactly as ``handkse
 articulate`` does (:func:`services.robot_bridge.client.articulate`, the demonstrated task: 180 deg
@@ -31,7 +33,7 @@ from services.common.errors import UserError
 from services.common.keys import Keys
 from services.common.playback import PlaybackOptions, play
 from services.common.processes import ProcessGroup, client_args, free_tcp_endpoint
-from services.common.protocol import KinematicModel
+from services.common.protocol import HandLandmarks, KinematicModel, KinematicModelList
 from services.evaluation.metrics import JointEstimate
 from services.evaluation.pipeline import demo_tangent_error_deg, joint_estimate
 from services.synthetic.generator import Demonstration, generate
@@ -66,10 +68,60 @@ def print_comparison(model: KinematicModel, demo: Demonstration) -> float:
     return err
 
 
+class PhasePrinter:
+    """Prints each contact phase as the published models reveal it: an onset when the models'
+    ``phase`` turns to "contact", the phase's verdict when it turns back to "free".
+
+    Times are seconds since the demonstration's first frame: ``offset_ns`` (set from the first
+    landmark message heard) is what playback added to the recorded stamps.
+    """
+
+    def __init__(self, demo: Demonstration) -> None:
+        self.start_ns = int(demo.stamps_ns[0])
+        self.offset_ns: int | None = None
+        self._phase: str | None = None
+
+    def seconds(self, stamp_ns: int | None) -> float:
+        """A published stamp as seconds since the demonstration's first frame."""
+        if stamp_ns is None or self.offset_ns is None:
+            return math.nan
+        return (stamp_ns - self.offset_ns - self.start_ns) * 1e-9
+
+    def on_landmarks(self, message: HandLandmarks) -> None:
+        if self.offset_ns is None:
+            self.offset_ns = message.stamp_ns - self.start_ns
+
+    def on_model(self, model: KinematicModel) -> None:
+        if model.phase is None or model.phase == self._phase:
+            return
+        if model.phase == "contact":
+            print(f"  phase: contact from t={self.seconds(model.segment_start_ns):.2f} s "
+                  f"(segment {model.segment})", flush=True)
+        elif self._phase == "contact":
+            print(f"  phase: free at t={self.seconds(model.stamp_ns):.2f} s; latest verdict: "
+                  f"segment {model.segment}, {model.type}", flush=True)
+        self._phase = model.phase
+
+    def print_segments(self, models: KinematicModelList, demo: Demonstration) -> None:
+        """Every detected phase beside the true contact intervals (seconds since the start)."""
+        print("\ncontact phases (s since the first frame):")
+        for m in models.models:
+            end = self.seconds(m.segment_end_ns)
+            print(f"  detected segment {m.segment}: {self.seconds(m.segment_start_ns):5.2f} - "
+                  f"{'open' if math.isnan(end) else f'{end:5.2f}'}  {m.type}")
+        for seg in demo.truth.segments:
+            print(f"  true     contact {seg.index}: {(seg.onset_ns - self.start_ns) * 1e-9:5.2f} - "
+                  f"{(seg.release_ns - self.start_ns) * 1e-9:5.2f}")
+
+
 def run_demo(object_name: str = "key", participant: int = 3, seed: int = 0, rate: float = 1.0,
              rig: str = "demo", workdir: Path | None = None, robot: bool = True,
-             view: bool = False, view_ports: tuple[int, int] = (9090, 9876)) -> float:
+             view: bool = False, view_ports: tuple[int, int] = (9090, 9876),
+             variant: str = "whole") -> float:
     """Run the whole pipeline on one synthetic demonstration; returns the tangent error (deg).
+
+    ``variant`` as :func:`services.synthetic.generator.generate` ("whole" by default: the stream
+    a camera sees, reach and withdrawal included); the contact phases are printed as detected.
 
     With ``robot``, a robot bridge process on the simulated Panda, holding the true object, is
     asked to articulate it along the estimated model (over the bus, as ``handkse articulate``
@@ -77,20 +129,22 @@ def run_demo(object_name: str = "key", participant: int = 3, seed: int = 0, rate
     ``handkse view`` shows the run in Rerun's web viewer (its URL is printed); ``view_ports``
     are the viewer's web and data ports on 127.0.0.1.
     """
-    demo = generate(object_name, participant, seed)
+    demo = generate(object_name, participant, seed, variant=variant)
     messages = demonstration_recording(demo, rig)
     duration = (demo.stamps_ns[-1] - demo.stamps_ns[0]) * 1e-9
     workdir = workdir or Path(tempfile.mkdtemp(prefix="handkse-demo-"))
     endpoint = free_tcp_endpoint()
     keys = Keys(rig)
-    print(f"handkse demo: {object_name}, participant {participant}, {len(messages)} frames "
+    print(f"handkse demo: {object_name} ({variant}), participant {participant}, "
+          f"{len(messages)} frames "
           f"({duration:.1f} s at rate {rate:g}); services on {endpoint}; logs in {workdir}")
     options = ZenohOptions(mode="client", connect=(endpoint,), multicast_scouting=False)
     with ProcessGroup(workdir) as group:
         group.start_pipeline(endpoint, rig, SERVICES)
         if robot:  # starts while the demonstration plays; asked once it is estimated
             group.start("robot_bridge", "robot-bridge", *client_args(endpoint, rig),
-                        "--sim-object", f"synthetic:{object_name}:{participant}:{seed}")
+                        "--sim-object",
+                        f"synthetic:{object_name}:{participant}:{seed}:{variant}")
         if view:
             group.start("view", "view", *client_args(endpoint, rig), "--web-port",
                         str(view_ports[0]), "--grpc-port", str(view_ports[1]))
@@ -102,8 +156,15 @@ def run_demo(object_name: str = "key", participant: int = 3, seed: int = 0, rate
             bus.get(keys.reset("kinematics"))  # a fresh demonstration even with an old state file
             bus.get(keys.reset("tracker"))
             latest: list[KinematicModel] = []
-            bus.subscribe(keys.kinematics_model,
-                          lambda _k, p: latest.append(KinematicModel.from_msgpack(p)))
+            phases = PhasePrinter(demo)
+
+            def on_model(_key: str, payload: bytes) -> None:
+                latest.append(KinematicModel.from_msgpack(payload))
+                phases.on_model(latest[-1])
+
+            bus.subscribe(keys.hand_landmarks,
+                          lambda _k, p: phases.on_landmarks(HandLandmarks.from_msgpack(p)))
+            bus.subscribe(keys.kinematics_model, on_model)
             stop = threading.Event()
             player = threading.Thread(target=play, args=(bus, keys, messages,
                                                          PlaybackOptions(rate=rate), stop),
@@ -116,6 +177,8 @@ def run_demo(object_name: str = "key", participant: int = 3, seed: int = 0, rate
                     print(_progress_line(latest[-1], demo, time.monotonic() - t0), flush=True)
             _wait_settled(latest)
             final = KinematicModel.from_msgpack(bus.get(keys.kinematics_model)[0][1])
+            phases.print_segments(KinematicModelList.from_msgpack(
+                bus.get(keys.kinematics_models)[0][1]), demo)
             error = print_comparison(final, demo)
             if robot:
                 articulate_on_bridge(group, bus, keys, final, demo)
@@ -171,5 +234,5 @@ def _wait_settled(latest: list[KinematicModel], quiet_s: float = 1.0, timeout: f
 def main(args: argparse.Namespace) -> int:
     run_demo(args.object, args.participant, args.seed, args.rate, args.rig,
              robot=not args.no_robot, view=args.view,
-             view_ports=(args.web_port, args.grpc_port))
+             view_ports=(args.web_port, args.grpc_port), variant=args.variant)
     return 0

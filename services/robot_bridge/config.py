@@ -85,7 +85,7 @@ class RobotBridgeConfig:
 
     # --- Simulation (backend "mujoco") ---
     # The simulated object (docs/robot_bridge.md#simulated-object): a preset ("key",
-    # "window_lock", "bolt") at the nominal grasp pose; "synthetic:OBJECT[:PARTICIPANT[:SEED]]",
+    # "window_lock", "bolt") at the nominal grasp pose; "synthetic:OBJECT[:PARTICIPANT[:SEED[:VARIANT]]]",
     # the true object of that synthetic demonstration; or an object calibration file (*.toml),
     # the object in the camera frame. The last two are placed through T_base_camera.
     sim_object: str = "key"
@@ -177,23 +177,26 @@ SYNTHETIC_PREFIX = "synthetic:"
 class SimObjectSource:
     """Where the simulated object comes from (``sim_object``): ``kind`` "preset" (``name`` one
     of :data:`SIM_OBJECTS`), "synthetic" (the demonstration ``generate(name, participant,
-    seed)``) or "file" (an object calibration file at ``path``)."""
+    seed, variant=variant)``) or "file" (an object calibration file at ``path``)."""
 
     kind: str
     name: str = ""
     participant: int = 3
     seed: int = 0
     path: str = ""
+    variant: str = "cut"
 
     def __str__(self) -> str:
         if self.kind == "synthetic":
-            return f"{SYNTHETIC_PREFIX}{self.name}:{self.participant}:{self.seed}"
+            text = f"{SYNTHETIC_PREFIX}{self.name}:{self.participant}:{self.seed}"
+            return text if self.variant == "cut" else f"{text}:{self.variant}"
         return self.path if self.kind == "file" else self.name
 
 
 def sim_object_source(text: str) -> SimObjectSource:
-    """Parse ``sim_object``: a preset name, ``synthetic:OBJECT[:PARTICIPANT[:SEED]]`` (participant
-    3 and seed 0 by default, as ``handkse replay --synthetic``) or a path ending in ``.toml``.
+    """Parse ``sim_object``: a preset name, ``synthetic:OBJECT[:PARTICIPANT[:SEED[:VARIANT]]]``
+    (participant 3, seed 0 and variant "cut" by default, as ``handkse replay --synthetic``) or a
+    path ending in ``.toml``.
 
     Raises ``ValueError`` naming what is wrong (an unknown object lists the known ones).
     """
@@ -201,10 +204,16 @@ def sim_object_source(text: str) -> SimObjectSource:
         return SimObjectSource("preset", name=text)
     if text.startswith(SYNTHETIC_PREFIX):
         parts = text[len(SYNTHETIC_PREFIX):].split(":")
-        if not 1 <= len(parts) <= 3 or not parts[0]:
+        if not 1 <= len(parts) <= 4 or not parts[0]:
             raise ValueError(f"sim_object {text!r} must look like synthetic:OBJECT, "
-                             "synthetic:OBJECT:PARTICIPANT or synthetic:OBJECT:PARTICIPANT:SEED")
-        from services.synthetic.splits import FREE_OBJECT, PARTICIPANTS, preset
+                             "synthetic:OBJECT:PARTICIPANT, synthetic:OBJECT:PARTICIPANT:SEED or "
+                             "synthetic:OBJECT:PARTICIPANT:SEED:VARIANT")
+        from services.synthetic.splits import FREE_OBJECT, PARTICIPANTS, VARIANTS, preset
+
+        variant = parts.pop() if len(parts) == 4 else "cut"
+        if variant not in VARIANTS:
+            raise ValueError(f"sim_object {text!r}: variant must be one of "
+                             f"{', '.join(VARIANTS)}, got {variant!r}")
 
         name = parts[0]
         if name == FREE_OBJECT:
@@ -224,11 +233,12 @@ def sim_object_source(text: str) -> SimObjectSource:
                              f"{min(PARTICIPANTS)}..{max(PARTICIPANTS)}, got {participant}")
         if seed < 0:
             raise ValueError(f"sim_object {text!r}: seed must be >= 0, got {seed}")
-        return SimObjectSource("synthetic", name=name, participant=participant, seed=seed)
+        return SimObjectSource("synthetic", name=name, participant=participant, seed=seed,
+                               variant=variant)
     if text.endswith(".toml"):
         return SimObjectSource("file", path=text)
     raise ValueError(f"sim_object must be a preset ({', '.join(SIM_OBJECTS)}), "
-                     f"synthetic:OBJECT[:PARTICIPANT[:SEED]] or an object calibration file "
+                     f"synthetic:OBJECT[:PARTICIPANT[:SEED[:VARIANT]]] or an object calibration file "
                      f"(*.toml), got {text!r}")
 
 

@@ -479,7 +479,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="robot backend (default: robot_bridge.backend, mujoco)")
     parser.add_argument("--sim-object", metavar="SOURCE",
                         help="simulated object: key, window_lock or bolt at the nominal grasp; "
-                             "synthetic:OBJECT[:PARTICIPANT[:SEED]], the true object of that "
+                             "synthetic:OBJECT[:PARTICIPANT[:SEED[:VARIANT]]], the true object of that "
                              "synthetic demonstration; or an object calibration FILE.toml "
                              "(docs/robot_bridge.md#simulated-object); default "
                              "robot_bridge.sim_object")

@@ -190,7 +190,8 @@ def object_from_source(source: SimObjectSource) -> ObjectInCamera:
     if source.kind == "synthetic":
         from services.synthetic.generator import generate
 
-        return object_in_camera(generate(source.name, source.participant, source.seed))
+        return object_in_camera(generate(source.name, source.participant, source.seed,
+                                         variant=source.variant))
     if source.kind == "file":
         return object_from_file(source.path)
     raise ValueError(f"a {source.kind} object has no camera-frame description")

@@ -200,3 +200,32 @@ def test_models_carry_the_phase_fields_and_pass_the_wire_checks() -> None:
     assert [m.segment for m in est.models] == [0, 1]
     assert all(m.segment_end_ns is not None and m.segment_start_ns is not None
                and m.segment_start_ns <= m.segment_end_ns for m in est.models)
+
+
+@pytest.mark.parametrize(("name", "participant"), [("window_lock", 3), ("kitchen_drawer", 6)])
+def test_a_new_body_epoch_starts_a_new_estimate_never_mixing_frames(name: str,
+                                                                    participant: int) -> None:
+    """Halfway through the stroke the tracker re-defines the body frame (``HandBody.body_epoch``
+    1): every later pose is ``T X`` for a fixed offset ``X`` of the hand frame. Told the epoch,
+    the open phase's estimate starts again from it and keeps the right joint; fed the same poses
+    as one body frame, the jump corrupts it (what this test guards against)."""
+    from services.common.se3 import so3_exp
+
+    demo = generate(name, participant, 0, variant="whole")
+    frames = noise_free(demo)
+    X = np.eye(4)
+    X[:3, :3] = so3_exp(np.array([0.0, 0.5, 0.2]))
+    X[:3, 3] = [0.03, -0.02, 0.04]
+    half = len(frames) // 2
+    told, mixed = SegmentedEstimator(), SegmentedEstimator()
+    for i, (stamp, T, C, landmarks) in enumerate(frames):
+        pose, epoch = (T, 0) if i < half else (T @ X, 1)
+        told.update(stamp, pose, C, landmarks, epoch)
+        mixed.update(stamp, pose, C, landmarks, 0)
+    model = told.verdict_model
+    assert [m.type for m in told.models] == [demo.truth.joint.type]
+    assert model.type == demo.truth.joint.type
+    assert 0 < model.updates < half  # only the frames of the new body frame
+    assert demo_tangent_error_deg(model, demo) < 5.0
+    wrong = mixed.verdict_model
+    assert wrong.type != demo.truth.joint.type or demo_tangent_error_deg(wrong, demo) > 10.0

@@ -35,6 +35,7 @@ from services.robot_bridge.simulation import (
     articulate_in_simulation,
     default_hand_eye,
     object_from_file,
+    object_from_source,
     object_in_camera,
     place_configured_object,
     true_task,
@@ -82,6 +83,10 @@ def test_sources_parse() -> None:
     assert sim_object_source("synthetic:slider:6:4") == SimObjectSource(
         "synthetic", name="slider", participant=6, seed=4)
     assert str(sim_object_source("synthetic:slider:6")) == "synthetic:slider:6:0"
+    whole = sim_object_source("synthetic:key:3:0:whole")
+    assert whole == SimObjectSource("synthetic", name="key", participant=3, seed=0,
+                                    variant="whole")
+    assert str(whole) == "synthetic:key:3:0:whole"
     assert sim_object_source("lab/key.toml") == SimObjectSource("file", path="lab/key.toml")
 
 
@@ -91,12 +96,25 @@ def test_sources_parse() -> None:
     ("synthetic:key:3:x", "participant and seed must be whole numbers"),
     ("synthetic:key:3:-1", "seed must be >= 0"),
     ("synthetic:free", "stream has no object"),
+    ("synthetic:key:3:0:long", "variant must be one of cut, whole"),
+    ("synthetic:key:3:0:whole:x", "must look like synthetic:OBJECT"),
     ("synthetic:", "must look like synthetic:OBJECT"),
     ("door", "sim_object must be a preset (key, window_lock, bolt), synthetic:OBJECT"),
 ])
 def test_a_bad_source_is_refused_with_the_rule(text: str, message: str) -> None:
     with pytest.raises(ValueError, match=message.replace("(", r"\(").replace(")", r"\)")):
         RobotBridgeConfig(sim_object=text)
+
+
+def test_a_synthetic_variant_is_that_variants_object() -> None:
+    """``handkse demo`` plays the whole demonstration; its object is placed elsewhere in the
+    camera than the cut one's, and the bridge must hold that one."""
+    whole = object_from_source(sim_object_source("synthetic:key:3:0:whole"))
+    truth = object_in_camera(generate("key", 3, 0, variant="whole"))
+    cut = object_from_source(sim_object_source("synthetic:key:3:0"))
+    np.testing.assert_array_equal(whole.point, truth.point)
+    np.testing.assert_array_equal(whole.axis, truth.axis)
+    assert np.linalg.norm(whole.point - cut.point) > 0.01
 
 
 # --- placement ---

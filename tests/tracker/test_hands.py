@@ -124,9 +124,11 @@ def test_one_hand_reported_twice_is_one_hand() -> None:
 
 @pytest.mark.parametrize(("obj", "participant"), [
     pytest.param("chain_lock", 3, marks=pytest.mark.xfail(
-        strict=True, reason="with the tempered model selection the idle hand moves this final "
-                            "axis by 5.2 deg (identical bodies up to the hand choice; issue 14 "
-                            "goal missed here, measured when the two changes met)")),
+        strict=True, reason="the tracker waits 1.9 s (56 frames) for one of two still hands to "
+                            "move; the bodies it then replays had no kinematic prior (kinematics "
+                            "had not seen them), while alone the hand's bodies use it from body "
+                            "40: 2.5 vs 3.6 deg tangent error, final axes 5.2 deg apart (with "
+                            "the prior off they are identical: the test below)")),
     ("window_lock", 2)])
 def test_generated_idle_hands_leave_the_estimate_within_a_degree(obj: str,
                                                                  participant: int) -> None:
@@ -145,6 +147,21 @@ def test_generated_idle_hands_leave_the_estimate_within_a_degree(obj: str,
         assert angle < 1.0
         assert abs(demo_tangent_error_deg(final, demo)
                    - demo_tangent_error_deg(base, base_demo)) < 1.0
+
+
+@pytest.mark.parametrize("mode", ["same", "flipping"])
+def test_without_the_kinematic_prior_an_idle_hand_changes_nothing(mode: str) -> None:
+    """What the idle hand can change at all is the hand choice's wait (bodies replayed without a
+    kinematic prior, see the xfail above): with the kinematic motion model off, the final model
+    with an idle hand is the one without it, to the last bit."""
+    from services.evaluation.pipeline import no_kinematic_prior_config
+
+    config = no_kinematic_prior_config()
+    alone = run_pipeline(generate("chain_lock", 3, 0), config).final
+    beside = run_pipeline(generate("chain_lock", 3, 0, idle_hand=mode), config).final
+    assert beside.type == alone.type == "prismatic"
+    assert beside.updates == alone.updates
+    assert np.array_equal(beside.prismatic.axis, alone.prismatic.axis)  # type: ignore[union-attr]
 
 
 # --- identity primitives ---------------------------------------------------------------------------
