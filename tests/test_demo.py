@@ -34,7 +34,7 @@ def test_demo_runs_end_to_end_and_prints_the_right_model(procs: Processes) -> No
                          re.MULTILINE)
     true = re.search(r"^  true +contact 0: +([0-9.]+) - +([0-9.]+)$", out, re.MULTILINE)
     assert detected is not None and true is not None, out
-    for found, truth in zip(detected.groups(), true.groups()):
+    for found, truth in zip(detected.groups(), true.groups(), strict=True):
         assert abs(float(found) - float(truth)) <= 0.5, out  # the onset and the release
     # then the robot bridge process, its simulated Panda holding the demonstration's true
     # slider, is asked to articulate along the estimate and answers (or refuses, with why)
