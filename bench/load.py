@@ -310,7 +310,10 @@ def rig_counts(run: RigRun) -> dict[str, int]:
     sent = {s for demo in run.sent_stamps for s in demo}
     bodies = {b.stamp_ns for _, b in run.bodies}
     initialised = {b.stamp_ns for _, b in run.bodies if b.initialized}
-    models = {m.stamp_ns for _, m in run.models if m.updates > 0}
+    # every initialised body is answered by a model; before the segmentation decides the first
+    # contact phase (its warm-up) that model is still the empty one (no updates), and the
+    # phase, dated back to the first frame, absorbs those bodies afterwards
+    models = {m.stamp_ns for _, m in run.models}
     t, k = run.stats["tracker"], run.stats["kinematics"]
     tracker_landmarks = t.received - k.published
     return {

@@ -143,13 +143,21 @@ class StateFile:
 
     def load(self) -> dict[str, Any] | None:
         """The saved document (without ``version``), or None if absent or unreadable."""
-        if self.path is None or not self.path.exists():
-            return None
-        try:
-            doc = unpack_document(self.path.read_bytes())
-            if doc.get("version") != self.version:
-                raise ValueError(f"version {doc.get('version')!r}, expected {self.version}")
-        except (OSError, ProtocolError, ValueError, AttributeError) as exc:
-            log.warning("ignoring unreadable state file %s: %s", self.path, exc)
-            return None
-        return {k: v for k, v in doc.items() if k != "version"}
+        return None if self.path is None else read_state(self.path, self.version)
+
+
+def read_state(path: Path, version: int) -> dict[str, Any] | None:
+    """The document saved at ``path`` (without ``version``), or None if absent, unreadable or of
+    another version. Unlike constructing a :class:`StateFile` it touches nothing in the folder,
+    so an observer may read while the owner's writer runs (a ``StateFile`` removes the
+    temporary file it takes for a dead writer's)."""
+    if not path.exists():
+        return None
+    try:
+        doc = unpack_document(path.read_bytes())
+        if doc.get("version") != version:
+            raise ValueError(f"version {doc.get('version')!r}, expected {version}")
+    except (OSError, ProtocolError, ValueError, AttributeError) as exc:
+        log.warning("ignoring unreadable state file %s: %s", path, exc)
+        return None
+    return {k: v for k, v in doc.items() if k != "version"}

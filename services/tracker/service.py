@@ -35,7 +35,7 @@ from services.common.state_file import StateFile
 from services.kinematics.phase_watch import ContactPhaseWatch, predicts_hand
 from services.kinematics.prediction import predict_hand_pose
 from services.tracker.config import TrackerConfig
-from services.tracker.state import body_document, body_from_document
+from services.tracker.state import body_document, body_from_document, epoch_from_document
 from services.tracker.tracker import FRAME_REJECTIONS, HandBodyEstimate, HandObservation, HandTracker
 
 log = logging.getLogger(__name__)
@@ -142,7 +142,7 @@ class TrackerNode:
         self.model = None
         self.phases.reset()
         self._saved_stamp_ns = None
-        self.state_file.save(body_document(None))
+        self.state_file.save(body_document(None, self.tracker.body_epoch))
 
     def _restore(self) -> None:
         """Adopt the body model of the state file; on any fault in it (unreadable, of another
@@ -152,8 +152,12 @@ class TrackerNode:
             doc = self.state_file.load()
             remembered = None if doc is None else body_from_document(doc)
             if remembered is None:
+                epoch = None if doc is None else epoch_from_document(doc)
+                if epoch is not None:  # after a reset: the next body frame is a new epoch
+                    self.tracker.continue_epochs(epoch)
                 return
-            if not self.tracker.remember_body(remembered.frame_id, remembered.points):
+            if not self.tracker.remember_body(remembered.frame_id, remembered.points,
+                                              remembered.body_epoch):
                 raise SnapshotError(
                     f"tracker.body.points: fewer than min_inliers = {self.tracker.config.min_inliers} "
                     "landmarks in the model")
@@ -176,7 +180,7 @@ class TrackerNode:
             return
         remembered = self.tracker.remembered_body()
         if remembered is not None:
-            self.state_file.save_later(body_document(remembered))
+            self.state_file.save_later(body_document(remembered, self.tracker.body_epoch))
             self._saved_stamp_ns = estimate.stamp_ns
 
 

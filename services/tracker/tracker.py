@@ -305,6 +305,15 @@ class HandTracker:
         self._epoch_used = True
         return True
 
+    def continue_epochs(self, body_epoch: int) -> None:
+        """Continue the body-epoch count of an earlier run (a state file without a body model:
+        written after a ``reset``): the next body frame is a new epoch after ``body_epoch``."""
+        if isinstance(body_epoch, bool) or not isinstance(body_epoch, (int, np.integer)) or (
+                body_epoch < 0):
+            raise ValueError(f"body_epoch must be a whole number >= 0, got {body_epoch!r}")
+        self.body_epoch = int(body_epoch)
+        self._epoch_used = True
+
     def step(self, stamp_ns: int, hands: Sequence[HandObservation],
              T_world_camera: np.ndarray | None = None,
              kinematic_prior: KinematicPrior | None = None) -> StepResult:

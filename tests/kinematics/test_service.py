@@ -25,7 +25,7 @@ from services.common.keys import Keys
 from services.common.protocol import Ack, HandBody, KinematicModel, LandmarkStates
 from services.common.se3 import se3_exp, skew
 from services.common.service import Service
-from services.common.state_file import StateFile
+from services.common.state_file import StateFile, read_state
 from services.kinematics.config import KinematicsConfig
 from services.kinematics.service import SNAPSHOT_VERSION as STATE_VERSION
 from services.kinematics.service import KinematicsNode
@@ -503,7 +503,7 @@ def test_a_state_file_of_an_older_version_is_ignored(tmp_path: Path,
 def _saved_updates(path: Path) -> int | None:
     """The updates of the open contact phase's estimate in the state file (the revolute bodies
     carry no landmarks: one phase, open from the first body)."""
-    doc = StateFile(path, STATE_VERSION).load() if path.exists() else None
+    doc = read_state(path, STATE_VERSION)  # not a StateFile: it would remove the writer's .tmp
     if doc is None or doc["estimator"]["open"] is None:
         return None
     return int(doc["estimator"]["open"]["estimator"]["updates"])

@@ -23,7 +23,12 @@ from services.synthetic.generator import generate
 from services.synthetic.replay import landmark_messages
 from services.tracker.config import TrackerConfig
 from services.tracker.service import SNAPSHOT_VERSION, TrackerNode
-from services.tracker.state import RememberedBody, body_document, body_from_document
+from services.tracker.state import (
+    RememberedBody,
+    body_document,
+    body_from_document,
+    epoch_from_document,
+)
 from tests.common.service_harness import ServiceHarness
 from tests.conftest import Processes, output_of, wait_routed, wait_until, zenoh_args
 
@@ -123,6 +128,9 @@ DOCUMENT_FAULTS: list[Fault] = [
     ("partly-nan", _row(2, [np.nan, 0.0, 0.0]), "tracker.body.points: rows [2] are partly NaN"),
     ("huge", _set("body.points", np.full((21, 3), 1e300)), "tracker.body.points: a coordinate of 1e+300 m"),
     ("far", _row(7, [0.0, 0.0, 2.5]), "tracker.body.points: a coordinate of 2.5 m"),
+    ("epoch-negative", _set("body_epoch", -1), "tracker.body_epoch: -1 is not a whole number"),
+    ("epoch-str", _set("body_epoch", "1"), "tracker.body_epoch: '1' is not a whole number"),
+    ("epoch-bool", _set("body_epoch", True), "tracker.body_epoch: True is not a whole number"),
 ]
 # a valid document that the tracker refuses: a model without enough landmarks to register
 NODE_FAULTS: list[Fault] = [
@@ -139,10 +147,49 @@ def test_what_the_tracker_writes_reads_back(written: dict[str, Any]) -> None:
     body = body_from_document(written)
     assert isinstance(body, RememberedBody) and body.frame_id == "camera"
     assert body.points.shape == (21, 3) and np.isfinite(body.points).all(axis=1).sum() >= 6
-    again = body_from_document(body_document((body.frame_id, body.points)))
-    assert again is not None and again.frame_id == body.frame_id
+    assert body.body_epoch == 0 and written["body_epoch"] == 0
+    again = body_from_document(body_document((body.frame_id, body.points), 3))
+    assert again is not None and again.frame_id == body.frame_id and again.body_epoch == 3
     np.testing.assert_array_equal(again.points, body.points)
-    assert body_from_document(body_document(None)) is None
+    assert body_from_document(body_document(None, 2)) is None
+    assert epoch_from_document(body_document(None, 2)) == 2
+
+
+def test_a_file_written_before_the_epoch_was_kept_still_restores_its_body(
+        written: dict[str, Any]) -> None:
+    old = {"body": written["body"]}
+    body = body_from_document(old)
+    assert body is not None and body.body_epoch is None and epoch_from_document(old) is None
+
+
+def test_a_restarted_tracker_continues_the_body_epoch_it_had(key_frames: list[HandLandmarks],
+                                                             tmp_path: Path) -> None:
+    """After a ``reset`` the tracker's body frame is epoch 1; killed and restarted from its
+    state file, it re-acquires that body frame and keeps publishing epoch 1 (epoch 0 would
+    tell the kinematics service that the body frame is new, and it would start again)."""
+    state = tmp_path / "tracker.state"
+    first = StatefulTracker(state)
+    first.landmarks(*key_frames[:40])
+    first.node.reset()
+    first.landmarks(*key_frames[40:90])
+    assert first.bodies[-1].initialized and first.bodies[-1].body_epoch == 1
+    assert first.node.state_file.flush()
+    restarted = StatefulTracker(state)
+    restarted.landmarks(*key_frames[95:140])
+    assert restarted.node.tracker.reacquire_attempts >= 1
+    epochs = {b.body_epoch for b in restarted.bodies if b.initialized}
+    assert epochs == {1}
+
+
+def test_a_tracker_restarted_after_a_reset_numbers_its_next_body_frame_on(
+        key_frames: list[HandLandmarks], tmp_path: Path) -> None:
+    state = tmp_path / "tracker.state"
+    first = StatefulTracker(state)
+    first.landmarks(*key_frames[:40])
+    first.node.reset()  # the file now holds no body, and epoch 0 as the last one used
+    restarted = StatefulTracker(state)
+    restarted.landmarks(*key_frames[40:80])
+    assert {b.body_epoch for b in restarted.bodies if b.initialized} == {1}
 
 
 def test_a_landmark_outside_the_model_is_a_row_of_nan(written: dict[str, Any]) -> None:
