@@ -163,9 +163,6 @@ def _yellow_pixels(png: Path) -> tuple[int, float]:
 
 @pytest.mark.skipif(not available(), reason="headless Chromium not installed (/usr/bin/chromium, "
                                             "Debian package chromium; make test installs it as root)")
-@pytest.mark.xfail(strict=False, reason="since the last merges of this session the web viewer has "
-                   "twice not drawn the landmarks within 180 s (under load); not yet understood, "
-                   "see the session note")
 def test_web_viewer_shows_the_landmarks(procs: Processes, router: str, tmp_path: Path) -> None:
     """The default view: Rerun's web viewer on loopback, opened in headless Chromium (WebGL on
     the SwiftShader software rasterizer). The 3-D view is empty before data and shows the
@@ -184,7 +181,9 @@ def test_web_viewer_shows_the_landmarks(procs: Processes, router: str, tmp_path:
     try:
         browser.open(url)
         before = tmp_path / "view-before-data.png"
-        deadline = time.monotonic() + 180
+        # Loading and compiling the viewer on the software rasterizer takes 10-30 s on an idle
+        # 2-core machine; it ran past 180 s twice with eight other jobs on those two cores.
+        deadline = time.monotonic() + 300
         while True:  # until the viewer's interface is drawn (the loading page is uniform)
             time.sleep(3)
             yellow_before, spread = _yellow_pixels(browser.screenshot(before))
