@@ -24,6 +24,7 @@ from services.kinematics.estimator import (
     chi2_quantile_of_sigmas,
 )
 from services.kinematics.filters import revolute_delta
+from tests.common.documents import with_field
 from tests.kinematics import (
     Joint,
     Sample,
@@ -675,16 +676,7 @@ def test_the_outlier_run_survives_a_snapshot() -> None:
 
 def _set(doc: dict[str, Any], path: str, value: Any) -> dict[str, Any]:
     """``doc`` with the value at the dotted ``path`` replaced (or deleted for ``...``)."""
-    doc = _through_wire(doc)
-    *parents, key = path.split(".")
-    node = doc
-    for p in parents:
-        node = node[p]
-    if value is ...:
-        del node[key]
-    else:
-        node[key] = value
-    return doc
+    return with_field(_through_wire(doc), path, value)
 
 
 def _nan_at(a: Array, index: tuple[int, ...]) -> Array:

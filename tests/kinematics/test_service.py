@@ -7,7 +7,6 @@ and its ``reset`` answer.
 
 from __future__ import annotations
 
-import copy
 import dataclasses
 import json
 import logging
@@ -33,6 +32,7 @@ from services.synthetic.generator import generate
 from services.synthetic.replay import landmark_messages
 from services.tracker.config import TrackerConfig
 from services.tracker.service import TrackerNode
+from tests.common.documents import with_field
 from tests.common.fake_bus import FakeBus
 from tests.common.service_harness import ServiceHarness, drain
 from tests.conftest import Processes, output_of, wait_routed, wait_until, zenoh_args
@@ -423,17 +423,6 @@ def _state_after(bodies: list[HandBody], path: Path) -> dict[str, Any]:
     return doc
 
 
-def _with(doc: dict[str, Any], path: str, value: Any) -> dict[str, Any]:
-    doc = copy.deepcopy(doc)
-    *parents, key = path.split(".")
-    node = doc
-    for p in parents:
-        node = node[p]
-    if value is ...:
-        del node[key]
-    else:
-        node[key] = value
-    return doc
 
 
 def test_a_state_file_written_after_a_far_stamp_restores_and_continues(tmp_path: Path) -> None:
@@ -478,7 +467,7 @@ def test_a_state_file_with_a_bad_value_is_ignored_with_a_warning(
     field, starts a new demonstration, and works."""
     state = tmp_path / "kin.state"
     bodies = revolute_bodies(90)
-    StateFile(state, STATE_VERSION).save(_with(_state_after(bodies[:60], state), path, value))
+    StateFile(state, STATE_VERSION).save(with_field(_state_after(bodies[:60], state), path, value))
     with caplog.at_level(logging.WARNING, logger="services.kinematics.service"):
         node = FakeKinematics(state_file=state)
     warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
@@ -543,7 +532,7 @@ def test_a_corrupt_state_file_does_not_stop_the_process(procs: Processes, router
     """A state file whose fields have the wrong type: the process warns, starts fresh, works."""
     state = tmp_path / "kin.state"
     doc = _state_after(revolute_bodies(30), state)
-    StateFile(state, STATE_VERSION).save(_with(_with(doc, "estimator.open.estimator.updates",
+    StateFile(state, STATE_VERSION).save(with_field(with_field(doc, "estimator.open.estimator.updates",
                                                      "many"),
                                                "estimator.open.estimator.revolute", "not a filter"))
     kin = _start(procs, router, state, client_bus)

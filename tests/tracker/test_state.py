@@ -4,7 +4,6 @@ node on the fake bus and in a real ``handkse tracker --state-file`` process."""
 
 from __future__ import annotations
 
-import copy
 import logging
 from collections.abc import Callable
 from pathlib import Path
@@ -29,6 +28,7 @@ from services.tracker.state import (
     body_from_document,
     epoch_from_document,
 )
+from tests.common.documents import with_field
 from tests.common.service_harness import ServiceHarness
 from tests.conftest import Processes, output_of, wait_routed, wait_until, zenoh_args
 
@@ -72,18 +72,6 @@ def _same_bodies(a: list[HandBody], b: list[HandBody]) -> bool:
         for x, y in zip(a, b, strict=True))
 
 
-def _with(doc: dict[str, Any], path: str, value: Any) -> dict[str, Any]:
-    """``doc`` with the field at dotted ``path`` set to ``value`` (``...``: deleted)."""
-    doc = copy.deepcopy(doc)
-    *parents, key = path.split(".")
-    node = doc
-    for p in parents:
-        node = node[p]
-    if value is ...:
-        del node[key]
-    else:
-        node[key] = value
-    return doc
 
 
 def _points_with(doc: dict[str, Any], row: int, values: list[float]) -> np.ndarray:
@@ -96,11 +84,11 @@ Fault = tuple[str, Callable[[dict[str, Any]], dict[str, Any]], str]
 
 
 def _set(path: str, value: Any) -> Callable[[dict[str, Any]], dict[str, Any]]:
-    return lambda doc: _with(doc, path, value)
+    return lambda doc: with_field(doc, path, value)
 
 
 def _row(row: int, values: list[float]) -> Callable[[dict[str, Any]], dict[str, Any]]:
-    return lambda doc: _with(doc, "body.points", _points_with(doc, row, values))
+    return lambda doc: with_field(doc, "body.points", _points_with(doc, row, values))
 
 
 # (id, the fault, what the warning names)
@@ -318,7 +306,7 @@ def test_a_tracker_process_with_a_corrupt_state_file_starts_and_tracks(
     line naming the fault, no traceback), starts fresh, and publishes what a fresh tracker
     does; its next snapshot replaces the file with a valid one."""
     state = tmp_path / "tracker.state"
-    corrupt = _with(_row(0, [np.nan, 1.0, 2.0])(written), "body.frame_id", 17)
+    corrupt = with_field(_row(0, [np.nan, 1.0, 2.0])(written), "body.frame_id", 17)
     StateFile(state, SNAPSHOT_VERSION).save(corrupt)
     bodies: list[HandBody] = []
     client_bus.subscribe(KEYS.hand_body, lambda k, p: bodies.append(HandBody.from_msgpack(p)))
