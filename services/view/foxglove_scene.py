@@ -44,9 +44,6 @@ from services.view import geometry as geo
 
 TOPICS = ("tf", "hand/trail", "hand/landmarks", "hand/body", "model", "camera/image",
           "camera/calibration", "camera/landmarks")
-_TYPE_COLORS = {"rigid": (0.6, 0.6, 0.6), "prismatic": (0.24, 0.55, 1.0),
-                "revolute": (1.0, 0.55, 0.12), "disconnected": (0.8, 0.24, 0.8),
-                "unknown": (0.9, 0.9, 0.9)}
 
 
 def topic_root(key: str) -> str:
@@ -240,7 +237,7 @@ class FoxgloveChannels:
     def _model(self, msg: KinematicModel, root: str) -> list[tuple[str, Any]]:
         q_range = self._ranges.setdefault(root, geo.JointRange()).update(msg)
         g = geo.joint_geometry(msg, q_range, self.n_sigma, self.axis_length_m)
-        rgb = _TYPE_COLORS[msg.type]
+        rgb = tuple(c / 255.0 for c in geo.TYPE_COLORS[msg.type])
         probability = msg.probabilities.get(msg.type)
         text = msg.type if probability is None else f"{msg.type} p={probability:.2f}"
         label_at = np.asarray(msg.reference_pose, float)[:3, 3]

@@ -46,6 +46,10 @@ HAND_BONES: tuple[tuple[int, int], ...] = (
 STATUS_NAMES = ("untracked", "used", "outlier", "excluded")
 STATUS_COLORS: Colors = np.array([[140, 140, 140, 255], [40, 200, 90, 255], [235, 50, 40, 255],
                                   [70, 130, 240, 255]], np.uint8)
+# One colour per joint type (8-bit RGB), the same in the live view and in Foxglove recordings.
+TYPE_COLORS: dict[str, tuple[int, int, int]] = {
+    "rigid": (150, 150, 150), "prismatic": (60, 140, 255), "revolute": (255, 140, 30),
+    "disconnected": (200, 60, 200), "unknown": (230, 230, 230)}
 _LOW_VISIBILITY = np.array([70, 80, 190, 255], float)
 _HIGH_VISIBILITY = np.array([255, 215, 40, 255], float)
 

@@ -71,8 +71,6 @@ MODEL_LOG = "log/model"
 ERROR_LOG = "log/errors"
 
 DETECTED_CLASS, TRACKED_CLASS = 0, 1
-TYPE_COLORS = {"rigid": (150, 150, 150), "prismatic": (60, 140, 255), "revolute": (255, 140, 30),
-               "disconnected": (200, 60, 200)}
 _MEDIA_TYPES = {"jpeg": "image/jpeg", "png": "image/png"}
 
 
@@ -187,7 +185,7 @@ class RerunScene:
             rr.ClassDescription(info=rr.AnnotationInfo(id=DETECTED_CLASS),
                                 keypoint_connections=bones)]), static=True)
         for name in JOINT_TYPES:
-            log(f"{PROBABILITY}/{name}", rr.SeriesLines(colors=[TYPE_COLORS[name]], names=name),
+            log(f"{PROBABILITY}/{name}", rr.SeriesLines(colors=[geo.TYPE_COLORS[name]], names=name),
                 static=True)
         log(JOINT_Q, rr.SeriesLines(names="q (rad or m)"), static=True)
         log(FORCE, rr.SeriesLines(colors=[[40, 120, 255]], names="measured |f|"), static=True)
@@ -283,7 +281,7 @@ class RerunScene:
             self._drawn = drawn
         if g is None:
             return
-        color = [*TYPE_COLORS[g.type], 255]
+        color = [*geo.TYPE_COLORS[g.type], 255]
         if g.type == "revolute":
             self.rec.log(AXIS, rr.LineStrips3D([g.segment], colors=[color], radii=0.003,
                                                labels=["revolute axis"]))
@@ -291,13 +289,13 @@ class RerunScene:
             e = g.point_ellipsoid
             self.rec.log(POINT_COVARIANCE, rr.Ellipsoids3D(
                 centers=[e.center], half_sizes=[e.half_sizes], quaternions=[e.quat_xyzw],
-                colors=[[*TYPE_COLORS[g.type], 90]], fill_mode="solid"))
+                colors=[[*geo.TYPE_COLORS[g.type], 90]], fill_mode="solid"))
         else:
             self.rec.log(ARROW, rr.Arrows3D(origins=[g.segment[0]],
                                             vectors=[g.segment[1] - g.segment[0]],
                                             colors=[color], radii=0.003,
                                             labels=["prismatic axis"]))
-        self.rec.log(CONE, rr.LineStrips3D(g.cone, colors=[[*TYPE_COLORS[g.type], 120]],
+        self.rec.log(CONE, rr.LineStrips3D(g.cone, colors=[[*geo.TYPE_COLORS[g.type], 120]],
                                            radii=0.0008))
         self.rec.log(SWEEP, rr.LineStrips3D([g.sweep], colors=[[255, 255, 255]], radii=0.002))
 
