@@ -5,6 +5,9 @@ from __future__ import annotations
 import threading
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from typing import TypeVar
+
+S = TypeVar("S", bound="HandleOwner")
 
 
 class ReleaseOnce:
@@ -45,4 +48,22 @@ class ReleaseOnce:
         self._release()
 
 
-__all__ = ["ReleaseOnce"]
+class HandleOwner:
+    """A camera or recording source that owns one :class:`ReleaseOnce` handle (``_handle``, set
+    by the subclass): ``close`` and the context manager."""
+
+    _handle: ReleaseOnce
+
+    def close(self) -> None:
+        """Stop: release the device or file at once when idle, else within one short wait of
+        the reading thread."""
+        self._handle.close()
+
+    def __enter__(self: S) -> S:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+__all__ = ["HandleOwner", "ReleaseOnce"]

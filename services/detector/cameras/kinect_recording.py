@@ -31,7 +31,7 @@ from services.detector.cameras.convert import (
     captured_frame,
     intrinsics_from_matrix,
 )
-from services.detector.cameras.handle import ReleaseOnce
+from services.detector.cameras.handle import HandleOwner, ReleaseOnce
 from services.detector.cameras.lens import LensDistortion, Undistorter
 from services.detector.sources import CapturedFrame, SourceUnavailable
 
@@ -59,7 +59,7 @@ def import_pyk4a(option: str) -> Any:
     return pyk4a
 
 
-class KinectRecordingSource:
+class KinectRecordingSource(HandleOwner):
     """Frames of an Azure Kinect / Orbbec Femto ``.mkv`` recording (module docstring)."""
 
     def __init__(self, path: str | Path, *, rate: float = 1.0, loop: bool = False,
@@ -156,16 +156,6 @@ class KinectRecordingSource:
             self.dropped["bad_frame"] += 1
             log.warning("%s: frame dropped: %s", self.path, exc)
             return None
-
-    def close(self) -> None:
-        """Close the file: at once when idle, else after the reader's current capture."""
-        self._handle.close()
-
-    def __enter__(self) -> KinectRecordingSource:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
 
 
 __all__ = ["COLOR_FORMATS", "COLOR_SIZES", "INSTALL", "KinectRecordingSource", "import_pyk4a"]

@@ -29,7 +29,7 @@ import numpy as np
 from services.common.protocol import CameraIntrinsics
 from services.detector.cameras.clock import DeviceClock
 from services.detector.cameras.convert import bgr_from_color, captured_frame, float32_value
-from services.detector.cameras.handle import ReleaseOnce
+from services.detector.cameras.handle import HandleOwner, ReleaseOnce
 from services.detector.cameras.lens import LensDistortion, Undistorter
 from services.detector.sources import CapturedFrame, SourceUnavailable
 
@@ -130,7 +130,7 @@ def _size(size: tuple[int, int]) -> str:
     return f"{size[0]}x{size[1]}"
 
 
-class RealSenseSource:
+class RealSenseSource(HandleOwner):
     """A live RealSense camera (module docstring); the first one found without ``serial``."""
 
     realtime = True
@@ -199,16 +199,6 @@ class RealSenseSource:
                 frame = self._frames.frame(frames)
                 if frame is not None:
                     yield frame
-
-    def close(self) -> None:
-        """Stop streaming: at once when idle, else within one short wait of the reader."""
-        self._handle.close()
-
-    def __enter__(self) -> RealSenseSource:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
 
 
 __all__ = ["INSTALL", "AlignedFrames", "RealSenseSource", "clock_domain", "import_pyrealsense2",

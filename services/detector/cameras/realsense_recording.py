@@ -30,7 +30,7 @@ from pathlib import Path
 from typing import Any, Generic, TypeVar
 
 from services.detector.cameras.clock import DeviceClock, Pacer
-from services.detector.cameras.handle import ReleaseOnce
+from services.detector.cameras.handle import HandleOwner, ReleaseOnce
 from services.detector.cameras.realsense import AlignedFrames, import_pyrealsense2
 from services.detector.sources import CapturedFrame, SourceUnavailable
 
@@ -85,7 +85,7 @@ class _Pass:
     depth_scale_m: float
 
 
-class RealSenseRecording:
+class RealSenseRecording(HandleOwner):
     """Frames of a RealSense recording (module docstring)."""
 
     def __init__(self, path: str | Path, *, rate: float = 1.0, loop: bool = False,
@@ -250,16 +250,6 @@ class RealSenseRecording:
                     if not self._pacer.wait(frame.stamp_ns):
                         return
                     yield frame
-
-    def close(self) -> None:
-        """Stop playing: at once when idle, else within one short wait of the reader."""
-        self._handle.close()
-
-    def __enter__(self) -> RealSenseRecording:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
 
 
 __all__ = ["SUFFIXES", "FramePairer", "RealSenseRecording"]
