@@ -8,10 +8,11 @@ the robot's end-effector poses are evidence of the joint (docs/robot_bridge.md#c
 library) at ``feed_rate_hz``, fuses its revolute estimate with the executed model (the prior) in
 information form when the two agree, and re-plans the rest of the path from the result at
 ``replan_rate_hz``. The executed joint moves toward the refined one at bounded rates, and each
-re-plan is blended into the command over one re-plan period with a minimum-jerk weight, so the
-commanded pose, twist and stiffness stay continuous; every re-planned path passes the plan checks
-again (speed, workspace, joint 7). Refinement only ever lowers stiffness (``compliance``) and
-never touches a limit.
+re-plan is blended into the command over ``blend_replans`` re-plan periods (overlapping) with a
+minimum-jerk weight, so the commanded pose, twist and stiffness stay continuous; every re-planned
+path passes the plan checks again (speed, workspace, joint 7). Refinement only ever lowers
+stiffness (``compliance``) and never touches a limit. :class:`RefinementRecord` keeps the refined
+model and the robot's own estimate at 90 deg of progress (``CHECKPOINT_RAD``) too.
 
 Aborts (:class:`~services.robot_bridge.safety.Refusal`): ``model_jump`` when the robot's own
 estimate, once engaged, moves faster than ``jump_direction_deg_per_s`` / ``jump_position_m_per_s``;
@@ -74,7 +75,8 @@ class RefinementConfig:
     """Closed-loop parameters (Hz, s, deg, m as named). Defaults: docs/robot_bridge.md#closed-loop."""
 
     feed_rate_hz: float = 20.0               # robot grasp poses into the estimator
-    replan_rate_hz: float = 10.0             # re-plans; each blends in over one period
+    replan_rate_hz: float = 10.0             # re-plans; each blends in over ...
+    blend_replans: float = 3.0               # ... this many re-plan periods (overlapping)
     engage_direction_std_deg: float = 2.0    # robot estimate used once its 1-sigma is below ...
     engage_position_std_m: float = 0.005     # ... these (direction; axis position at the grasp)
     min_type_probability: float = 0.8        # ... and P(revolute) reaches this
@@ -94,7 +96,8 @@ class RefinementConfig:
     grasp_stiffness_nm_per_rad: float | None = None
 
     def __post_init__(self) -> None:
-        for name in ("feed_rate_hz", "replan_rate_hz", "engage_direction_std_deg",
+        for name in ("feed_rate_hz", "replan_rate_hz", "blend_replans",
+                     "engage_direction_std_deg",
                      "engage_position_std_m", "max_direction_rate_deg_per_s",
                      "max_position_rate_m_per_s", "jump_direction_deg_per_s",
                      "jump_position_m_per_s", "prior_gate_sigmas"):
@@ -173,9 +176,16 @@ def _turn_toward(a: Array, b: Array, max_angle: float) -> Array:
 
 
 class _Blend:
-    """Minimum-jerk cross-fade from ``old`` to ``new`` over ``[t0, t0 + T]`` (poses, twists)."""
+    """Minimum-jerk cross-fade from ``old`` to ``new`` over ``[t0, t0 + T]`` (poses, twists).
 
-    def __init__(self, old: ArticulationPlan, new: ArticulationPlan, t0: float, T: float) -> None:
+    ``old`` may itself be a blend still under way: re-plans overlap when ``T`` spans several
+    re-plan periods, which turns the re-plans' steps into a nearly constant correction speed
+    (one period per blend would move the command in a 10 Hz staircase of velocity bumps,
+    which rang the grasp in simulation). :func:`_settled` drops the blends that have ended.
+    """
+
+    def __init__(self, old: ArticulationPlan | _Blend, new: ArticulationPlan, t0: float,
+                 T: float) -> None:
         self.old, self.new, self.t0, self.T = old, new, t0, T
 
     def weight(self, t: float) -> tuple[float, float]:
@@ -199,6 +209,18 @@ class _Blend:
         return T, twist, th
 
 
+def _settled(path: ArticulationPlan | _Blend, t: float) -> ArticulationPlan | _Blend:
+    """``path`` with every blend that has ended by ``t`` replaced by its target."""
+    if not isinstance(path, _Blend):
+        return path
+    if t >= path.t0 + path.T:
+        return path.new
+    old = _settled(path.old, t)
+    if old is not path.old:
+        return _Blend(old, path.new, path.t0, path.T)
+    return path
+
+
 def _so3_log(R: Array) -> Array:
     c = max(-1.0, min(1.0, (float(np.trace(R)) - 1.0) / 2.0))
     angle = math.acos(c)
@@ -219,6 +241,13 @@ class RefinementRecord:
     foot: Array
     direction_std_rad: float
     position_std_m: float
+    # At the first feed past CHECKPOINT_RAD of commanded progress: the refined model (what the
+    # executed joint moves toward) and the robot's own estimate (None before it is revolute).
+    checkpoint: AxisBelief | None = None
+    robot_at_checkpoint: AxisBelief | None = None
+
+
+CHECKPOINT_RAD = math.pi / 2   # the issue's "after 90 deg of articulation"
 
 
 class Refiner:
@@ -249,6 +278,7 @@ class Refiner:
         self._feed_every = max(1, round(1.0 / (c.feed_rate_hz * dt_s)))
         self._replan_every = max(1, round(1.0 / (c.replan_rate_hz * dt_s)))
         self._replan_s = self._replan_every * dt_s
+        self._blend_s = c.blend_replans * self._replan_s
         self._tick = 0
         self._last_robot: tuple[float, AxisBelief] | None = None
         self._min_dir = math.inf
@@ -256,7 +286,9 @@ class Refiner:
         self.engaged_at_s: float | None = None
         self.replans = 0
         self.prior_fused = 0
-        self.robot_belief: AxisBelief | None = None
+        self.robot_belief: AxisBelief | None = None     # engaged robot estimates only
+        self._robot_any: AxisBelief | None = None       # the latest revolute robot estimate
+        self._checkpoint: tuple[AxisBelief, AxisBelief | None] | None = None
         self._law = ComplianceLaw(gains) if c.compliance else None
         self._gains_old: MatrixGains | None = None
         self._gains_new: MatrixGains | None = None
@@ -281,6 +313,8 @@ class Refiner:
             refusal = self._feed(t_s, stamp_ns, T, cov)
             if refusal is not None:
                 return refusal
+            if self._checkpoint is None and abs(self.plan.sample(t_s)[2]) >= CHECKPOINT_RAD:
+                self._checkpoint = (self.target, self._robot_any)
         if k % self._replan_every == 0 and k > 0:
             return self._replan(t_s)
         return None
@@ -334,6 +368,7 @@ class Refiner:
         robot = axis_belief(model, self.T_base_frame, self._grasp)
         if float(robot.axis @ self.prior.axis) < 0.0:
             robot = AxisBelief(-robot.axis, robot.foot, robot.cov)
+        self._robot_any = robot
         d_std, p_std = robot.direction_std(), robot.position_std()
         if self.engaged_at_s is None:
             if d_std > math.radians(c.engage_direction_std_deg) or p_std > c.engage_position_std_m:
@@ -368,8 +403,7 @@ class Refiner:
 
     def _replan(self, t_s: float) -> Refusal | None:
         c = self.config
-        if isinstance(self._path, _Blend):
-            self._path = self._path.new       # the previous blend ended exactly now
+        self._path = _settled(self._path, t_s)
         self._axis = _turn_toward(self._axis, self.target.axis,
                                   math.radians(c.max_direction_rate_deg_per_s) * self._replan_s)
         step = self.target.foot - self._foot
@@ -381,20 +415,24 @@ class Refiner:
         refusal = plan_checks(new, **self._checks)  # type: ignore[arg-type]
         if refusal is not None:
             return Refusal(refusal.reason, f"re-planned path: {refusal.detail}")
-        self._path = _Blend(self._path, new, t_s, self._replan_s)
+        if self._law is not None:
+            # from the stiffness commanded now (a blend may be under way): continuous
+            self._gains_old = self.gains_at(t_s)
+        self._path = _Blend(self._path, new, t_s, self._blend_s)
         self.plan = new
         self.replans += 1
         if self._law is not None:
-            self._gains_old = self._gains_new
-            theta = new.sample(t_s + self._replan_s)[2]
+            theta = new.sample(t_s + self._blend_s)[2]
             self._gains_new = self._law.gains(self._axis, self._foot, self._grasp, self.target,
                                               theta)
         return None
 
     def record(self) -> RefinementRecord:
+        at = self._checkpoint
         return RefinementRecord(self.replans, self.engaged_at_s, self.prior_fused,
                                 self._axis.copy(), self._foot.copy(),
-                                self.target.direction_std(), self.target.position_std())
+                                self.target.direction_std(), self.target.position_std(),
+                                None if at is None else at[0], None if at is None else at[1])
 
 
 def robot_body(stamp_ns: int, frame_id: str, T_frame_base: Array, T_base_ee: Array,
