@@ -134,35 +134,45 @@ def axis_belief(model: KinematicModel, T_base_frame: Array, grasp_base: Array) -
 def fuse(prior: AxisBelief, robot: AxisBelief, gate_sigmas: float) -> AxisBelief:
     """Information-form fusion of two independent beliefs, or ``robot`` when they disagree.
 
-    Both are expressed in ``robot``'s tangent basis; the along-axis part of the foot is fixed by
-    construction, so both position blocks get a (0.1 mm)^2 regulariser. Disagreement: the
-    squared Mahalanobis distance beyond the ``gate_sigmas`` quantile of a 4-dof Gaussian (two
-    direction and two position coordinates carry information).
+    Four coordinates carry information: the direction's two in ``robot``'s tangent basis, and
+    where each axis crosses the plane through ``robot.foot`` normal to ``robot.axis`` (two in
+    that plane). Each foot's along-axis coordinate is fixed by construction (the point nearest
+    the grasp), but along *its own* axis: fusing the two 3-d feet of axes a few degrees apart
+    (as this function first did, with a small regulariser along each axis) pinned the result to
+    the intersection of two thin slabs and extrapolated it, millimetres beyond both beliefs.
+    Disagreement: the squared Mahalanobis distance beyond the ``gate_sigmas`` quantile of a
+    4-dof Gaussian.
     """
     B_r = tangent_basis(robot.axis)
-    a_p = prior.axis if float(prior.axis @ robot.axis) >= 0.0 else -prior.axis
-    T = np.eye(5)
-    T[:2, :2] = B_r.T @ tangent_basis(prior.axis) * (1.0 if a_p is prior.axis else -1.0)
-    C_p = T @ prior.cov @ T.T + _REGULARISER
-    C_r = robot.cov + _REGULARISER
-    x_p = np.concatenate([B_r.T @ a_p, prior.foot])
-    x_r = np.concatenate([np.zeros(2), robot.foot])
-    e = x_p - x_r
+    sign = 1.0 if float(prior.axis @ robot.axis) >= 0.0 else -1.0
+    a_p = sign * prior.axis
+    # The prior's axis where it crosses the robot's plane (the prior foot moved along a_p).
+    cos = float(a_p @ robot.axis)
+    if cos < 0.5:  # more than 60 deg apart: nothing to fuse
+        return robot
+    f_p = prior.foot + (float((robot.foot - prior.foot) @ robot.axis) / cos) * a_p
+    J_p = np.zeros((4, 5))
+    J_p[:2, :2] = B_r.T @ tangent_basis(prior.axis) * sign
+    J_p[2:, 2:] = B_r.T
+    J_r = np.zeros((4, 5))
+    J_r[:2, :2] = np.eye(2)
+    J_r[2:, 2:] = B_r.T
+    C_p = J_p @ prior.cov @ J_p.T
+    C_r = J_r @ robot.cov @ J_r.T
+    x_p = np.concatenate([B_r.T @ a_p, B_r.T @ (f_p - robot.foot)])  # robot's belief: 0
     try:
-        d2 = float(e @ np.linalg.solve(C_p + C_r, e))
+        d2 = float(x_p @ np.linalg.solve(C_p + C_r, x_p))
         I_p, I_r = np.linalg.inv(C_p), np.linalg.inv(C_r)
     except np.linalg.LinAlgError:
         return robot
     if not d2 <= chi2_quantile_of_sigmas(gate_sigmas, 4):
         return robot
     C_f = np.linalg.inv(I_p + I_r)
-    x_f = C_f @ (I_p @ x_p + I_r @ x_r)
+    x_f = C_f @ (I_p @ x_p)
     a = robot.axis + B_r @ x_f[:2]
     a /= np.linalg.norm(a)
-    return AxisBelief(a, x_f[2:], C_f)
-
-
-_REGULARISER = np.diag([0.0, 0.0, 1e-8, 1e-8, 1e-8])
+    cov = J_r.T @ C_f @ J_r   # back to (b1, b2, foot): no along-axis position information
+    return AxisBelief(a, robot.foot + B_r @ x_f[2:], cov)
 
 
 def _turn_toward(a: Array, b: Array, max_angle: float) -> Array:

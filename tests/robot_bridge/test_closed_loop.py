@@ -143,3 +143,42 @@ def test_overlapping_blends_keep_the_command_smooth() -> None:
     assert np.linalg.norm(p[-1] - p3.sample(float(ts[-1]))[0][:3, 3]) < 1e-12
     assert rf._settled(path, 2.35).old.old is p1               # the first blend has ended
     assert rf._settled(path, 2.5) is p3
+
+
+def _belief(tilt_deg: float, offset_m: float, dir_std_deg: float, pos_std_m: float,
+            grasp: np.ndarray) -> object:
+    """A revolute belief near the true axis (z through the origin), at ``grasp``."""
+    from services.common.se3 import so3_exp
+    from services.kinematics.filters import tangent_basis
+    from services.robot_bridge.compliance import AxisBelief
+
+    a = so3_exp(np.array([0.0, math.radians(tilt_deg), 0.0])) @ np.array([0.0, 0.0, 1.0])
+    point = np.array([0.0, offset_m, float(grasp[2])])  # tilted about the grasp height
+    foot = point + float((grasp - point) @ a) * a
+    B = tangent_basis(a)
+    cov = np.zeros((5, 5))
+    cov[:2, :2] = np.eye(2) * math.radians(dir_std_deg) ** 2
+    cov[2:, 2:] = B @ B.T * pos_std_m ** 2
+    return AxisBelief(a, foot, cov)
+
+
+def test_fusion_stays_between_the_beliefs() -> None:
+    """A camera prior 3 deg and 4 mm off and a sharper robot estimate 0.5 deg off, tilted toward
+    the lever: they agree, and the fused axis lies between them. (Fusing each foot with its
+    along-axis coordinate pinned to its own axis refused this pair as disagreeing, and on the
+    window lock extrapolated the fused axis 6-8 mm beyond both.)"""
+    grasp = np.array([0.06, 0.0, 0.3])
+    prior = _belief(3.0, 0.004, 2.3, 0.005, grasp)
+    robot = _belief(-0.5, 0.0, 0.3, 0.0025, grasp)
+    fused = rf.fuse(prior, robot, 3.0)
+    assert fused is not robot  # they agree within the gate: fused
+
+    def distance_at_grasp(b: object) -> float:
+        f = b.foot + float((grasp - b.foot) @ b.axis) * b.axis  # type: ignore[attr-defined]
+        return float(np.hypot(f[0], f[1]))
+
+    z = np.array([0.0, 0.0, 1.0])
+    angle = math.degrees(math.acos(float(fused.axis @ z)))
+    assert angle < 3.0
+    assert distance_at_grasp(fused) <= max(distance_at_grasp(prior), distance_at_grasp(robot))
+    assert fused.position_std() < robot.position_std()
