@@ -182,3 +182,25 @@ def test_fusion_stays_between_the_beliefs() -> None:
     assert angle < 3.0
     assert distance_at_grasp(fused) <= max(distance_at_grasp(prior), distance_at_grasp(robot))
     assert fused.position_std() < robot.position_std()
+
+
+def test_closed_loop_stays_in_simulation() -> None:
+    """On a real arm's backend (panda-py, faked) a refinement config runs open loop: its inline
+    feed and re-plan ticks would overrun a 1 kHz control loop."""
+    from services.evaluation.robot_perturbations import perturbed_model
+    from services.robot_bridge.config import RobotBridgeConfig
+    from services.robot_bridge.executor import Bridge
+    from services.robot_bridge.pandapy_backend import PandaPyBackend
+    from services.robot_bridge.simulation import grasp_in_camera, object_in_camera
+    from services.robot_bridge.trajectory import ArticulationPlan, JointInBase
+    from services.synthetic.generator import generate
+    from tests.robot_bridge import fake_panda_py
+
+    config = RobotBridgeConfig()
+    obj = object_in_camera(generate("key", 3, 0))
+    model = perturbed_model(obj, 10.0, 10.0, 0.0, grasp_in_camera(obj)[:3, 3])
+    backend = PandaPyBackend(fake_panda_py.FakePanda(), fake_panda_py.controllers, config)
+    T0 = backend.read().T_base_ee.copy()
+    plan = ArticulationPlan(JointInBase("revolute", T0[:3, 2].copy(), T0[:3, 3].copy()), T0,
+                            math.pi, 6.0)
+    assert Bridge(backend, config, rf.RefinementConfig())._refiner(plan, model) is None
