@@ -40,6 +40,9 @@ from services.robot_bridge.config import RobotBridgeConfig, config_from_args
 Array = NDArray[np.float64]
 
 LATEST = Path(__file__).resolve().parents[2] / "bench" / "results" / "robot_trials"
+# robot_perturbations.CASES spelled out, so that building the parser imports no simulation code
+# (tests/evaluation/test_robot_perturbations.py checks they agree).
+DEFAULT_CASES_TEXT = "5:0,10:0,20:0,0:5,0:10,0:20,10:10"
 REPORT_FILES = ("table.md", "results.csv", "traces.json", "force_trials.png", "force_key.png")
 
 
@@ -130,9 +133,10 @@ def _axis_errors(model: KinematicModel, obj: object) -> tuple[float, float]:
     return angle, off * 100.0
 
 
-def run_trial(object_name: str, seed: int, method: str, config: RobotBridgeConfig
-              ) -> tuple[TrialRow, dict[str, list[float]]]:
-    """Estimate on one demonstration and run one simulated trial; the row and the force trace."""
+def run_trial(object_name: str, seed: int, method: str, config: RobotBridgeConfig,
+              closed_loop: bool = False) -> tuple[TrialRow, dict[str, list[float]]]:
+    """Estimate on one demonstration and run one simulated trial (``closed_loop``: refined from
+    the robot's own motion, docs/robot_bridge.md#closed-loop); the row and the force trace."""
     from services.robot_bridge.simulation import articulate_in_simulation, object_in_camera
     from services.synthetic.generator import generate
 
@@ -140,7 +144,12 @@ def run_trial(object_name: str, seed: int, method: str, config: RobotBridgeConfi
     obj = object_in_camera(demo)
     model = estimate(method, demo)
     angle, offset = _axis_errors(model, obj)
-    sim = articulate_in_simulation(model, obj, config=config)
+    refinement = None
+    if closed_loop:
+        from services.robot_bridge.refinement import RefinementConfig
+
+        refinement = RefinementConfig()
+    sim = articulate_in_simulation(model, obj, config=config, refinement=refinement)
     r = sim.result
     ex = sim.execution
     reached = math.degrees(r.articulated) if model.type == "revolute" else r.articulated * 1e3
@@ -189,7 +198,7 @@ def table_markdown(rows: Sequence[TrialRow], methods: Sequence[str], title: str)
 
 def run_trials(seeds: int = 5, methods: Sequence[str] = METHODS,
                config: RobotBridgeConfig | None = None, jobs: int = 1,
-               objects: Sequence[str] = OBJECTS
+               objects: Sequence[str] = OBJECTS, closed_loop: bool = False
                ) -> tuple[list[TrialRow], dict[tuple[str, int, str], dict[str, list[float]]]]:
     """Every (object, seed, method) trial; rows in task order and their force traces. Shows
     the trials as they finish and how many are left."""
@@ -208,10 +217,11 @@ def run_trials(seeds: int = 5, methods: Sequence[str] = METHODS,
 
         if jobs <= 1:
             for i, t in enumerate(tasks):
-                finished(i, run_trial(*t, cfg))
+                finished(i, run_trial(*t, cfg, closed_loop))
         else:
             with ProcessPoolExecutor(jobs) as pool:
-                futures = {pool.submit(run_trial, *t, cfg): i for i, t in enumerate(tasks)}
+                futures = {pool.submit(run_trial, *t, cfg, closed_loop): i
+                           for i, t in enumerate(tasks)}
                 for future in as_completed(futures):
                     finished(futures[future], future.result())
         progress.done(f"{len(tasks)} trials in {time.monotonic() - t0:.1f} s")
@@ -238,26 +248,69 @@ def write_report(rows: Sequence[TrialRow], traces: dict[tuple[str, int, str],
 
 
 def main(args: argparse.Namespace) -> int:
-    """Run the trials, print Table III, write the report folder."""
+    """Run the trials, print Table III, write the report folder (``--perturbed``: the
+    perturbed starting models instead, :func:`perturbed_main`)."""
     config = config_from_args(args)
+    if getattr(args, "perturbed", False):
+        return perturbed_main(args, config)
     methods = tuple(args.methods.split(",")) if args.methods else METHODS
     for m in methods:
         if m not in METHODS:
             raise SystemExit(f"unknown method {m!r}; choose from {list(METHODS)}")
     jobs = args.jobs or max(1, os.cpu_count() or 1)
-    rows, traces = run_trials(args.seeds, methods, config, jobs)
-    out = Path(args.out or Path("robot_trials") / time.strftime("%Y-%m-%d"))
+    closed = bool(getattr(args, "closed_loop", False))
+    rows, traces = run_trials(args.seeds, methods, config, jobs, closed_loop=closed)
+    loop = "closed_loop" if closed else ""
+    out = Path(args.out or Path("robot_trials") / time.strftime("%Y-%m-%d") / loop)
     title = (f"handkse robot trials in simulation: {len(OBJECTS)} objects x {args.seeds} "
              f"demonstrations (participant {PARTICIPANT}), force limit "
-             f"{config.force_limit_n:.0f} N, 180 deg in 6 s")
+             f"{config.force_limit_n:.0f} N, 180 deg in 6 s"
+             + (", closed loop (refined from the robot's own motion)" if closed else ""))
     write_report(rows, traces, methods, out, args.plot_seed, config.force_limit_n, title)
     print((out / "table.md").read_text().split("\n\nFailures")[0])
     print(f"written {out}/" + ", ".join(REPORT_FILES))
     if args.publish:
-        LATEST.mkdir(parents=True, exist_ok=True)
+        latest = LATEST / loop if loop else LATEST
+        latest.mkdir(parents=True, exist_ok=True)
         for name in REPORT_FILES:
             if (out / name).exists():
-                shutil.copy(out / name, LATEST / name)
+                shutil.copy(out / name, latest / name)
+        print(f"copied to {latest}")
+    return 0
+
+
+def perturbed_main(args: argparse.Namespace, config: RobotBridgeConfig) -> int:
+    """Perturbed starting models (:mod:`services.evaluation.robot_perturbations`), open and
+    closed loop: print and write ``perturbed.md`` and ``perturbed.csv`` (``--publish``: also to
+    bench/results/robot_trials/, with the machine that ran them)."""
+    from services.common.errors import UserError
+    from services.evaluation import robot_perturbations as rp
+
+    try:
+        cases = rp.parse_cases(args.cases) if args.cases else rp.CASES
+        objects = tuple(x.strip() for x in args.objects.split(",") if x.strip()) \
+            if args.objects else rp.OBJECTS
+        unknown = [o for o in objects if o not in rp.OBJECTS]
+        if unknown or not objects:
+            raise ValueError(f"unknown object(s) {unknown}; choose from {list(rp.OBJECTS)}")
+        if args.directions < 1:
+            raise ValueError(f"--directions must be >= 1, got {args.directions}")
+    except ValueError as exc:
+        raise UserError(str(exc)) from None
+    jobs = args.jobs or max(1, os.cpu_count() or 1)
+    rows = rp.run_perturbed(objects, cases, args.directions, config, jobs)
+    out = Path(args.out or Path("robot_trials") / time.strftime("%Y-%m-%d"))
+    title = (f"handkse robot trials in simulation, perturbed starting models: "
+             f"{', '.join(objects)} (participant {PARTICIPANT}, seed 0), {args.directions} "
+             f"direction(s) per case, open and closed loop, force limit "
+             f"{config.force_limit_n:.0f} N, 180 deg in 6 s")
+    written = rp.write_report(rows, out, title, rp.describe_machine())
+    print(written[0].read_text())
+    print(f"written {out}/" + ", ".join(p.name for p in written))
+    if args.publish:
+        LATEST.mkdir(parents=True, exist_ok=True)
+        for path in written:
+            shutil.copy(path, LATEST / path.name)
         print(f"copied to {LATEST}")
     return 0
 
@@ -271,6 +324,19 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--plot-seed", type=int, default=0, help="key demonstration for force_key.png")
     p.add_argument("--publish", action="store_true",
                    help="also copy to bench/results/robot_trials/")
+    p.add_argument("--closed-loop", action="store_true",
+                   help="refine each model from the robot's own motion while articulating "
+                   "(reports under closed_loop/, published to bench/results/robot_trials/"
+                   "closed_loop/)")
+    p.add_argument("--perturbed", action="store_true",
+                   help="instead of Table III: the true key and window-lock joints perturbed "
+                   "(tilt, offset), each run open and closed loop (perturbed.md, perturbed.csv)")
+    p.add_argument("--cases", help="with --perturbed: comma-separated TILT_DEG:OFFSET_MM cases "
+                   f"(default: {DEFAULT_CASES_TEXT})")
+    p.add_argument("--directions", type=int, default=10,
+                   help="with --perturbed: perturbation directions per case (default 10)")
+    p.add_argument("--objects", help="with --perturbed: comma-separated subset of key, "
+                   "window_lock")
 
 
 if __name__ == "__main__":

@@ -207,6 +207,15 @@ class SegmentedEstimator:
         """Every phase's model, oldest first, with the current stamp and phase."""
         return tuple(self._stamped(m) for m in self.segments)
 
+    def continuation(self) -> tuple[KinematicModel, dict[str, Any], Array] | None:
+        """The latest closed phase with a verdict, for another source of poses to continue
+        (:mod:`services.kinematics.robot_fusion`): its model, its estimator's snapshot and its
+        hand pose at its end (estimator space); None without one. Changes nothing."""
+        if self._candidate is None:
+            return None
+        record, snapshot, T_end = self._candidate
+        return self._closed[record], snapshot, T_end
+
     def _stamped(self, model: KinematicModel) -> KinematicModel:
         stamp = model.stamp_ns if self._last_stamp is None else self._last_stamp
         return replace(model, stamp_ns=stamp, phase=self.phase)

@@ -21,6 +21,14 @@ restarted service continues the demonstration where it was, every closed contact
 included. A state file that does not hold a valid estimate (any field of the wrong type, shape
 or range, NaN, an unknown frame, a stamp far ahead of the clock) is ignored with a warning naming
 the problem: the service starts fresh.
+
+With ``robot_fusion`` (opt-in, ``--fuse-robot-body``) it also subscribes
+``handkse/{rig}/robot/body``: the robot bridge's grasp poses while it articulates continue the
+latest articulated phase's estimate in a separate estimator (:mod:`services.kinematics.
+robot_fusion`); each accepted one publishes the refined model as usual (``get`` answers it until
+the next camera update). Refused robot bodies are counted as ``robot_`` plus the reason (e.g.
+``robot_hand_in_contact``, ``robot_no_articulated_model``, ``robot_frame_changed``). The robot
+session is not written to the state file.
 """
 
 from __future__ import annotations
@@ -43,6 +51,7 @@ from services.common.stamps import StampLimits, StampWindow
 from services.common.state_file import StateFile
 from services.kinematics.config import KinematicsConfig
 from services.kinematics.contact import SegmentationConfig
+from services.kinematics.robot_fusion import RobotFusion, RobotFusionConfig
 from services.kinematics.segments import SegmentedEstimator, verdict_of
 
 log = logging.getLogger(__name__)
@@ -59,7 +68,8 @@ class KinematicsNode:
     def __init__(self, service: Service, config: KinematicsConfig,
                  state_file: Path | None = None, stamp_limits: StampLimits | None = None,
                  clock: Callable[[], int] = time.time_ns,
-                 segmentation: SegmentationConfig | None = None) -> None:
+                 segmentation: SegmentationConfig | None = None,
+                 robot_fusion: RobotFusionConfig | None = None) -> None:
         self.service = service
         self.config = config
         self.segmentation = SegmentationConfig() if segmentation is None else segmentation
@@ -73,6 +83,10 @@ class KinematicsNode:
         self._lock = threading.Lock()
         keys = service.keys
         service.subscribe(keys.hand_body, HandBody, self.on_body)
+        self.robot = None if robot_fusion is None else RobotFusion(config, robot_fusion)
+        self.robot_stamps = StampWindow(self.stamp_limits)
+        if self.robot is not None:
+            service.subscribe(keys.robot_body, HandBody, self.on_robot_body)
         service.bus.declare_queryable(keys.kinematics_model, self.answer_model)
         service.bus.declare_queryable(keys.kinematics_models, self.answer_models)
         service.on_reset(self.reset)
@@ -138,6 +152,32 @@ class KinematicsNode:
         self._publish(result.model)
         self._save()
 
+    def on_robot_body(self, body: HandBody) -> None:
+        """A robot grasp pose (module docstring): refine and publish, or count why not."""
+        assert self.robot is not None
+        if not body.initialized:
+            return
+        if body.frame_id != self.estimator.frame_id:
+            self.service.reject("robot_frame_changed", f"robot body at {body.stamp_ns} ns in "
+                                f"{body.frame_id!r}, the demonstration is in "
+                                f"{self.estimator.frame_id!r}")
+            return
+        received = self.clock()
+        far = self.robot_stamps.check(body.stamp_ns, received)
+        if far is not None:
+            self.service.reject("robot_far_future", f"robot body: {far}")
+            return
+        with self.service.latency.measure("robot_update"):
+            result = self.robot.update(self.estimator, body.stamp_ns, body.pose,
+                                       body.covariance[:6, :6])
+        if result.reason is not None or result.model is None:
+            detail = f": {result.note}" if result.note else ""
+            self.service.reject(f"robot_{result.reason}", f"robot body at {body.stamp_ns} ns"
+                                f"{detail}")
+            return
+        self.robot_stamps.accept(body.stamp_ns, received)
+        self._publish(result.model)
+
     def _publish(self, model: KinematicModel) -> None:
         keys = self.service.keys
         message = replace(model, seq=self.service.next_seq(keys.kinematics_model))
@@ -152,6 +192,9 @@ class KinematicsNode:
         publish nothing until its first hand body (module docstring)."""
         self.estimator.reset()
         self.stamps.forget()
+        self.robot_stamps.forget()
+        if self.robot is not None:
+            self.robot.reset()
         with self._lock:
             self._latest = self.estimator.model
             self._closed = ()
@@ -188,9 +231,11 @@ def _answer(message: KinematicModel | KinematicModelList, request: QueryRequest)
 def run(bus: BusLike, keys: Keys, config: KinematicsConfig, stop: threading.Event,
         state_file: Path | None = None, stamp_limits: StampLimits | None = None,
         limits: ServiceLimits | None = None,
-        segmentation: SegmentationConfig | None = None) -> None:
+        segmentation: SegmentationConfig | None = None,
+        robot_fusion: RobotFusionConfig | None = None) -> None:
     service = Service("kinematics", bus, keys, limits)
-    node = KinematicsNode(service, config, state_file, stamp_limits, segmentation=segmentation)
+    node = KinematicsNode(service, config, state_file, stamp_limits, segmentation=segmentation,
+                          robot_fusion=robot_fusion)
     service.run(stop)
     node.state_file.flush()
 
@@ -199,6 +244,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--state-file", type=Path,
                         help="write the estimator state here after every update and restore it "
                              "at start (survives kill and restart)")
+    parser.add_argument("--fuse-robot-body", action="store_true",
+                        help="also refine the latest articulated phase's estimate from the robot "
+                             "bridge's grasp poses (robot/body) while it articulates")
 
 
 def main(args: argparse.Namespace) -> int:
@@ -210,5 +258,6 @@ def main(args: argparse.Namespace) -> int:
     with Bus(options_from_args(args, base)) as bus:
         print("kinematics ready", flush=True)
         run(bus, Keys(args.rig), config, stop, args.state_file, stamp_limits,
-            section_from_args(args, "limits"), section_from_args(args, "segmentation"))
+            section_from_args(args, "limits"), section_from_args(args, "segmentation"),
+            RobotFusionConfig() if getattr(args, "fuse_robot_body", False) else None)
     return 0

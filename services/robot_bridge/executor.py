@@ -349,6 +349,12 @@ class Bridge:
         T_base_frame = c.base_T_frame(model.frame_id)
         if self.refinement is None or model.type != "revolute" or T_base_frame is None:
             return None
+        if self.backend.name != "mujoco":
+            # Its feed and re-plan ticks take up to ~3 ms inline (bench/results/robot.json):
+            # over a real arm's 1 kHz budget. Simulation only until they leave the control loop.
+            log.warning("closed-loop refinement runs in simulation only in this version; "
+                        "articulating open loop on the %s backend", self.backend.name)
+            return None
         checks = {"q7_rad": float(self.backend.read().q[6]),
                   "max_linear_m_per_s": c.max_linear_speed_m_per_s,
                   "max_angular_rad_per_s": c.max_angular_speed_rad_per_s,

@@ -8,10 +8,11 @@ the robot's end-effector poses are evidence of the joint (docs/robot_bridge.md#c
 library) at ``feed_rate_hz``, fuses its revolute estimate with the executed model (the prior) in
 information form when the two agree, and re-plans the rest of the path from the result at
 ``replan_rate_hz``. The executed joint moves toward the refined one at bounded rates, and each
-re-plan is blended into the command over one re-plan period with a minimum-jerk weight, so the
-commanded pose, twist and stiffness stay continuous; every re-planned path passes the plan checks
-again (speed, workspace, joint 7). Refinement only ever lowers stiffness (``compliance``) and
-never touches a limit.
+re-plan is blended into the command over ``blend_replans`` re-plan periods (overlapping) with a
+minimum-jerk weight, so the commanded pose, twist and stiffness stay continuous; every re-planned
+path passes the plan checks again (speed, workspace, joint 7). Refinement only ever lowers
+stiffness (``compliance``) and never touches a limit. :class:`RefinementRecord` keeps the refined
+model and the robot's own estimate at 90 deg of progress (``CHECKPOINT_RAD``) too.
 
 Aborts (:class:`~services.robot_bridge.safety.Refusal`): ``model_jump`` when the robot's own
 estimate, once engaged, moves faster than ``jump_direction_deg_per_s`` / ``jump_position_m_per_s``;
@@ -74,7 +75,8 @@ class RefinementConfig:
     """Closed-loop parameters (Hz, s, deg, m as named). Defaults: docs/robot_bridge.md#closed-loop."""
 
     feed_rate_hz: float = 20.0               # robot grasp poses into the estimator
-    replan_rate_hz: float = 10.0             # re-plans; each blends in over one period
+    replan_rate_hz: float = 10.0             # re-plans; each blends in over ...
+    blend_replans: float = 3.0               # ... this many re-plan periods (overlapping)
     engage_direction_std_deg: float = 2.0    # robot estimate used once its 1-sigma is below ...
     engage_position_std_m: float = 0.005     # ... these (direction; axis position at the grasp)
     min_type_probability: float = 0.8        # ... and P(revolute) reaches this
@@ -94,7 +96,8 @@ class RefinementConfig:
     grasp_stiffness_nm_per_rad: float | None = None
 
     def __post_init__(self) -> None:
-        for name in ("feed_rate_hz", "replan_rate_hz", "engage_direction_std_deg",
+        for name in ("feed_rate_hz", "replan_rate_hz", "blend_replans",
+                     "engage_direction_std_deg",
                      "engage_position_std_m", "max_direction_rate_deg_per_s",
                      "max_position_rate_m_per_s", "jump_direction_deg_per_s",
                      "jump_position_m_per_s", "prior_gate_sigmas"):
@@ -131,35 +134,45 @@ def axis_belief(model: KinematicModel, T_base_frame: Array, grasp_base: Array) -
 def fuse(prior: AxisBelief, robot: AxisBelief, gate_sigmas: float) -> AxisBelief:
     """Information-form fusion of two independent beliefs, or ``robot`` when they disagree.
 
-    Both are expressed in ``robot``'s tangent basis; the along-axis part of the foot is fixed by
-    construction, so both position blocks get a (0.1 mm)^2 regulariser. Disagreement: the
-    squared Mahalanobis distance beyond the ``gate_sigmas`` quantile of a 4-dof Gaussian (two
-    direction and two position coordinates carry information).
+    Four coordinates carry information: the direction's two in ``robot``'s tangent basis, and
+    where each axis crosses the plane through ``robot.foot`` normal to ``robot.axis`` (two in
+    that plane). Each foot's along-axis coordinate is fixed by construction (the point nearest
+    the grasp), but along *its own* axis: fusing the two 3-d feet of axes a few degrees apart
+    (as this function first did, with a small regulariser along each axis) pinned the result to
+    the intersection of two thin slabs and extrapolated it, millimetres beyond both beliefs.
+    Disagreement: the squared Mahalanobis distance beyond the ``gate_sigmas`` quantile of a
+    4-dof Gaussian.
     """
     B_r = tangent_basis(robot.axis)
-    a_p = prior.axis if float(prior.axis @ robot.axis) >= 0.0 else -prior.axis
-    T = np.eye(5)
-    T[:2, :2] = B_r.T @ tangent_basis(prior.axis) * (1.0 if a_p is prior.axis else -1.0)
-    C_p = T @ prior.cov @ T.T + _REGULARISER
-    C_r = robot.cov + _REGULARISER
-    x_p = np.concatenate([B_r.T @ a_p, prior.foot])
-    x_r = np.concatenate([np.zeros(2), robot.foot])
-    e = x_p - x_r
+    sign = 1.0 if float(prior.axis @ robot.axis) >= 0.0 else -1.0
+    a_p = sign * prior.axis
+    # The prior's axis where it crosses the robot's plane (the prior foot moved along a_p).
+    cos = float(a_p @ robot.axis)
+    if cos < 0.5:  # more than 60 deg apart: nothing to fuse
+        return robot
+    f_p = prior.foot + (float((robot.foot - prior.foot) @ robot.axis) / cos) * a_p
+    J_p = np.zeros((4, 5))
+    J_p[:2, :2] = B_r.T @ tangent_basis(prior.axis) * sign
+    J_p[2:, 2:] = B_r.T
+    J_r = np.zeros((4, 5))
+    J_r[:2, :2] = np.eye(2)
+    J_r[2:, 2:] = B_r.T
+    C_p = J_p @ prior.cov @ J_p.T
+    C_r = J_r @ robot.cov @ J_r.T
+    x_p = np.concatenate([B_r.T @ a_p, B_r.T @ (f_p - robot.foot)])  # robot's belief: 0
     try:
-        d2 = float(e @ np.linalg.solve(C_p + C_r, e))
+        d2 = float(x_p @ np.linalg.solve(C_p + C_r, x_p))
         I_p, I_r = np.linalg.inv(C_p), np.linalg.inv(C_r)
     except np.linalg.LinAlgError:
         return robot
     if not d2 <= chi2_quantile_of_sigmas(gate_sigmas, 4):
         return robot
     C_f = np.linalg.inv(I_p + I_r)
-    x_f = C_f @ (I_p @ x_p + I_r @ x_r)
+    x_f = C_f @ (I_p @ x_p)
     a = robot.axis + B_r @ x_f[:2]
     a /= np.linalg.norm(a)
-    return AxisBelief(a, x_f[2:], C_f)
-
-
-_REGULARISER = np.diag([0.0, 0.0, 1e-8, 1e-8, 1e-8])
+    cov = J_r.T @ C_f @ J_r   # back to (b1, b2, foot): no along-axis position information
+    return AxisBelief(a, robot.foot + B_r @ x_f[2:], cov)
 
 
 def _turn_toward(a: Array, b: Array, max_angle: float) -> Array:
@@ -173,9 +186,16 @@ def _turn_toward(a: Array, b: Array, max_angle: float) -> Array:
 
 
 class _Blend:
-    """Minimum-jerk cross-fade from ``old`` to ``new`` over ``[t0, t0 + T]`` (poses, twists)."""
+    """Minimum-jerk cross-fade from ``old`` to ``new`` over ``[t0, t0 + T]`` (poses, twists).
 
-    def __init__(self, old: ArticulationPlan, new: ArticulationPlan, t0: float, T: float) -> None:
+    ``old`` may itself be a blend still under way: re-plans overlap when ``T`` spans several
+    re-plan periods, which turns the re-plans' steps into a nearly constant correction speed
+    (one period per blend would move the command in a 10 Hz staircase of velocity bumps,
+    which rang the grasp in simulation). :func:`_settled` drops the blends that have ended.
+    """
+
+    def __init__(self, old: ArticulationPlan | _Blend, new: ArticulationPlan, t0: float,
+                 T: float) -> None:
         self.old, self.new, self.t0, self.T = old, new, t0, T
 
     def weight(self, t: float) -> tuple[float, float]:
@@ -199,6 +219,18 @@ class _Blend:
         return T, twist, th
 
 
+def _settled(path: ArticulationPlan | _Blend, t: float) -> ArticulationPlan | _Blend:
+    """``path`` with every blend that has ended by ``t`` replaced by its target."""
+    if not isinstance(path, _Blend):
+        return path
+    if t >= path.t0 + path.T:
+        return path.new
+    old = _settled(path.old, t)
+    if old is not path.old:
+        return _Blend(old, path.new, path.t0, path.T)
+    return path
+
+
 def _so3_log(R: Array) -> Array:
     c = max(-1.0, min(1.0, (float(np.trace(R)) - 1.0) / 2.0))
     angle = math.acos(c)
@@ -219,6 +251,13 @@ class RefinementRecord:
     foot: Array
     direction_std_rad: float
     position_std_m: float
+    # At the first feed past CHECKPOINT_RAD of commanded progress: the refined model (what the
+    # executed joint moves toward) and the robot's own estimate (None before it is revolute).
+    checkpoint: AxisBelief | None = None
+    robot_at_checkpoint: AxisBelief | None = None
+
+
+CHECKPOINT_RAD = math.pi / 2   # the issue's "after 90 deg of articulation"
 
 
 class Refiner:
@@ -249,6 +288,7 @@ class Refiner:
         self._feed_every = max(1, round(1.0 / (c.feed_rate_hz * dt_s)))
         self._replan_every = max(1, round(1.0 / (c.replan_rate_hz * dt_s)))
         self._replan_s = self._replan_every * dt_s
+        self._blend_s = c.blend_replans * self._replan_s
         self._tick = 0
         self._last_robot: tuple[float, AxisBelief] | None = None
         self._min_dir = math.inf
@@ -256,7 +296,9 @@ class Refiner:
         self.engaged_at_s: float | None = None
         self.replans = 0
         self.prior_fused = 0
-        self.robot_belief: AxisBelief | None = None
+        self.robot_belief: AxisBelief | None = None     # engaged robot estimates only
+        self._robot_any: AxisBelief | None = None       # the latest revolute robot estimate
+        self._checkpoint: tuple[AxisBelief, AxisBelief | None] | None = None
         self._law = ComplianceLaw(gains) if c.compliance else None
         self._gains_old: MatrixGains | None = None
         self._gains_new: MatrixGains | None = None
@@ -281,6 +323,8 @@ class Refiner:
             refusal = self._feed(t_s, stamp_ns, T, cov)
             if refusal is not None:
                 return refusal
+            if self._checkpoint is None and abs(self.plan.sample(t_s)[2]) >= CHECKPOINT_RAD:
+                self._checkpoint = (self.target, self._robot_any)
         if k % self._replan_every == 0 and k > 0:
             return self._replan(t_s)
         return None
@@ -334,6 +378,7 @@ class Refiner:
         robot = axis_belief(model, self.T_base_frame, self._grasp)
         if float(robot.axis @ self.prior.axis) < 0.0:
             robot = AxisBelief(-robot.axis, robot.foot, robot.cov)
+        self._robot_any = robot
         d_std, p_std = robot.direction_std(), robot.position_std()
         if self.engaged_at_s is None:
             if d_std > math.radians(c.engage_direction_std_deg) or p_std > c.engage_position_std_m:
@@ -368,8 +413,7 @@ class Refiner:
 
     def _replan(self, t_s: float) -> Refusal | None:
         c = self.config
-        if isinstance(self._path, _Blend):
-            self._path = self._path.new       # the previous blend ended exactly now
+        self._path = _settled(self._path, t_s)
         self._axis = _turn_toward(self._axis, self.target.axis,
                                   math.radians(c.max_direction_rate_deg_per_s) * self._replan_s)
         step = self.target.foot - self._foot
@@ -381,20 +425,24 @@ class Refiner:
         refusal = plan_checks(new, **self._checks)  # type: ignore[arg-type]
         if refusal is not None:
             return Refusal(refusal.reason, f"re-planned path: {refusal.detail}")
-        self._path = _Blend(self._path, new, t_s, self._replan_s)
+        if self._law is not None:
+            # from the stiffness commanded now (a blend may be under way): continuous
+            self._gains_old = self.gains_at(t_s)
+        self._path = _Blend(self._path, new, t_s, self._blend_s)
         self.plan = new
         self.replans += 1
         if self._law is not None:
-            self._gains_old = self._gains_new
-            theta = new.sample(t_s + self._replan_s)[2]
+            theta = new.sample(t_s + self._blend_s)[2]
             self._gains_new = self._law.gains(self._axis, self._foot, self._grasp, self.target,
                                               theta)
         return None
 
     def record(self) -> RefinementRecord:
+        at = self._checkpoint
         return RefinementRecord(self.replans, self.engaged_at_s, self.prior_fused,
                                 self._axis.copy(), self._foot.copy(),
-                                self.target.direction_std(), self.target.position_std())
+                                self.target.direction_std(), self.target.position_std(),
+                                None if at is None else at[0], None if at is None else at[1])
 
 
 def robot_body(stamp_ns: int, frame_id: str, T_frame_base: Array, T_base_ee: Array,

@@ -56,3 +56,12 @@ def test_one_trial_and_the_report(tmp_path: Path) -> None:
     back = read_traces(tmp_path / "traces.json")[("key", 4, "regal")]
     assert len(back["t_s"]) == len(trace["t_s"]) and back["stop_s"] == pytest.approx(
         trace["stop_s"], abs=1e-3)
+
+
+def test_one_closed_loop_trial() -> None:
+    """``--closed-loop``: the same task, refined from the robot's own motion, still succeeds
+    within the limits (a good baseline estimate, the key)."""
+    row, trace = run_trial("key", 4, "regal", RobotBridgeConfig(), closed_loop=True)
+    assert row.success, row.reason
+    assert abs(row.articulated_deg) > 170.0 and 0.0 < row.peak_force_n < 70.0
+    assert len(trace["t_s"]) > 100
