@@ -60,6 +60,15 @@ class KinematicsConfig:
     # Variance added to every diagonal entry of R [m^2 or rad^2].
     measurement_noise_floor: float = 1e-6
 
+    # --- Published covariance (docs/estimation.md#published-covariance) ---
+    # The published joint covariance is the filter's times covariance_correlation_scale
+    # (1 + rho) / (1 - rho), rho the lag-one autocorrelation of the filter's whitened innovations
+    # (the filter counts correlated frames as independent), at least 1 and at most
+    # max_covariance_inflation. The scale was fitted on the tuning partitions
+    # (docs/estimation.md#tuning-record).
+    covariance_correlation_scale: float = 0.5
+    max_covariance_inflation: float = 30.0
+
     # Longest prediction step [s]: a longer gap between stamps is predicted as this long. The
     # constant-velocity model is not extrapolated over a long loss of tracking (for a revolute
     # joint that would pick an arbitrary 2 pi branch of q; the process noise grows as dt^3).
@@ -81,6 +90,13 @@ class KinematicsConfig:
     # ... once the displacement has been beyond the rigid test (rigid_test_sigmas) for this long
     # [s]: a displacement that persists, not a single noisy frame.
     prismatic_min_motion_s: float = 0.1
+    # Each time the rotation from the reference has grown by this factor since the revolute filter
+    # started (or was last checked), its axis is compared with the axis of the current delta; the
+    # filter restarts from that delta when they differ by more than revolute_restart_sigmas (an
+    # EKF started from a noisy axis converges slowly while its covariance shrinks;
+    # docs/estimation.md#filter-start).
+    revolute_recheck_growth: float = 1.5
+    revolute_restart_sigmas: float = 4.0
 
     # --- Model selection (docs/estimation.md#model-selection) ---
     # Number of history entries sampled uniformly over the whole demonstration.
@@ -152,7 +168,8 @@ class KinematicsConfig:
             "likelihood_correlation_time_s",
             "revolute_max_joint_distance_m", "disconnected_density",
             "prismatic_min_translation_m", "revolute_min_rotation_rad", "max_prediction_dt_s",
-            "outlier_gate_sigmas", "max_hand_displacement_m",
+            "outlier_gate_sigmas", "max_hand_displacement_m", "covariance_correlation_scale",
+            "revolute_restart_sigmas",
         )
         non_negative = (
             "prismatic_axis_noise_rad2_per_s3", "prismatic_q_noise_m2_per_s3",
@@ -174,6 +191,12 @@ class KinematicsConfig:
         for name in non_negative:
             if not getattr(self, name) >= 0.0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)!r}")
+        if not self.revolute_recheck_growth > 1.0:
+            raise ValueError("revolute_recheck_growth must be > 1, got "
+                             f"{self.revolute_recheck_growth!r}")
+        if not self.max_covariance_inflation >= 1.0:
+            raise ValueError("max_covariance_inflation must be >= 1, got "
+                             f"{self.max_covariance_inflation!r}")
         if not self.max_inflation_factor >= 1.0:
             raise ValueError(f"max_inflation_factor must be >= 1, got {self.max_inflation_factor!r}")
         if self.prior_disconnected <= 0.0:

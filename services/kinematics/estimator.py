@@ -90,7 +90,7 @@ from services.kinematics.selection import ModelSelector
 
 Array = NDArray[np.float64]
 
-SNAPSHOT_VERSION = 3
+SNAPSHOT_VERSION = 4
 
 RejectReason = Literal["invalid_stamp", "invalid_value", "bad_shape", "non_finite",
                        "invalid_covariance", "duplicate_stamp", "out_of_order", "outlier"]
@@ -190,7 +190,7 @@ def prismatic_params(f: PrismaticJoint) -> PrismaticParams:
     G = np.array([[t00, t01, 0.0, 0.0], [t10, t11, 0.0, 0.0], [0.0, 0.0, s, 0.0],
                   [0.0, 0.0, 0.0, s]])
     cov = G @ f.P[:4, :4] @ G.T
-    cov = (cov + cov.T) * 0.5
+    cov = (cov + cov.T) * (0.5 * f.covariance_inflation())
     cov.flags.writeable = False
     return PrismaticParams(axis=axis, q=s * f.q, dq=s * f.qdot, covariance=cov)
 
@@ -205,7 +205,7 @@ def revolute_params(f: RevoluteJoint) -> RevoluteParams:
                   [0.0, 0.0, a2, c2, 0.0, 0.0], [0.0, 0.0, 0.0, 0.0, s, 0.0],
                   [0.0, 0.0, 0.0, 0.0, 0.0, s]])
     cov = G @ f.P[:6, :6] @ G.T
-    cov = (cov + cov.T) * 0.5
+    cov = (cov + cov.T) * (0.5 * f.covariance_inflation())
     cov.flags.writeable = False
     return RevoluteParams(axis=axis, point=_frozen(f.p), q=s * f.q, dq=s * f.qdot,
                           covariance=cov)
@@ -237,6 +237,7 @@ class KinematicEstimator:
         self._floor3 = self.config.measurement_noise_floor * _I3
         self._floor6 = self.config.measurement_noise_floor * _I6
         self._gate_d2 = chi2_quantile_of_sigmas(self.config.outlier_gate_sigmas, 6)
+        self._restart_d2 = chi2_quantile_of_sigmas(self.config.revolute_restart_sigmas, 2)
         self._run_ns = round(self.config.outlier_run_s * 1e9)
         self.reset()
 
@@ -258,6 +259,9 @@ class KinematicEstimator:
         self._prismatic: PrismaticJoint | None = None
         self._revolute: RevoluteJoint | None = None
         self._rotation_pending = False
+        # The rotation angle [rad] at which the revolute filter's axis is next checked against
+        # the delta's (docs/estimation.md#filter-start).
+        self._revolute_check_rad = math.inf
         # The prismatic filter started below min_motion_sigmas, and the stamp since which the
         # displacement has been above prismatic_min_motion_sigmas (docs/estimation.md#filter-start).
         self._prismatic_provisional = False
@@ -439,15 +443,20 @@ class KinematicEstimator:
             self._prismatic = PrismaticJoint.from_displacement(cfg, disp, self._Sigma0_disp)
             self._prismatic_provisional = not confirmed
             self._selector.history.backfill_prismatic(self._prismatic.u)
+        angle = math.sqrt(float(w @ w))
         if self._revolute is not None:
-            f = revolute_noise_inflation(math.sqrt(float(w @ w)), cfg)
+            f = revolute_noise_inflation(angle, cfg)
             self._revolute.predict(dt)
             self._revolute.update(D, f * Sigma + self._floor6)  # R = f Sigma + floor I
+            if angle >= self._revolute_check_rad:
+                # The rotation grew: is the filter's axis still consistent with this delta's?
+                self._revolute_check_rad = angle * cfg.revolute_recheck_growth
+                if self._revolute_axis_d2(w, R_D, Sigma) > self._restart_d2:
+                    self._start_revolute(D, angle)
         else:
             significant = d2_rot >= cfg.min_motion_sigmas ** 2
-            if significant and float(w @ w) >= cfg.revolute_min_rotation_rad ** 2:
-                self._revolute = RevoluteJoint.from_twist(cfg, se3_log_fast(D), self._Sigma0)
-                self._selector.history.backfill_revolute(self._revolute.u)
+            if significant and angle >= cfg.revolute_min_rotation_rad:
+                self._start_revolute(D, angle)
             # A significant rotation below the start threshold: a revolute joint cannot be ruled
             # out before its filter runs, so no type is published meanwhile (_type_known).
             self._rotation_pending = significant and self._revolute is None
@@ -538,6 +547,29 @@ class KinematicEstimator:
         return (C_pred + Sigma + A @ self._Sigma0 @ A.T
                 + (s_q * dt * dt * dt / 3.0) * np.outer(xi, xi) + self._floor6)
 
+    def _start_revolute(self, D: Array, angle: float) -> None:
+        """Start (or restart) the revolute filter from the delta ``D``, whose rotation angle is
+        ``angle`` [rad] (docs/estimation.md#filter-start)."""
+        self._revolute = RevoluteJoint.from_twist(self.config, se3_log_fast(D), self._Sigma0)
+        self._revolute_check_rad = angle * self.config.revolute_recheck_growth
+        self._selector.history.backfill_revolute(self._revolute.u)
+
+    def _revolute_axis_d2(self, w: Array, R_D: Array, Sigma: Array) -> float:
+        """Squared Mahalanobis distance between the revolute filter's axis and the axis of the
+        current delta's rotation vector ``w`` (3,) [rad] (sign-folded onto the filter's), in the
+        filter's tangent basis ``B``: the tangent coordinates ``b = B' w / |w|`` against
+        ``P_b + B' Sigma_w B / |w|^2``, ``Sigma_w`` the rotation-vector covariance of the rigid
+        test (the current pose's plus the reference's, rotated with the delta;
+        docs/estimation.md#filter-start)."""
+        f = self._revolute
+        assert f is not None
+        n2 = float(w @ w)
+        a = w if float(w @ f.u) >= 0.0 else -w
+        Sigma_w = Sigma[3:, 3:] + R_D @ self._Sigma0[3:, 3:] @ R_D.T + self._floor3
+        b = f.B.T @ a / math.sqrt(n2)
+        C = f.P[:2, :2] + (f.B.T @ Sigma_w @ f.B) / n2
+        return _mahalanobis2(b, C)
+
     def _displacement_persists(self, stamp: int, d2_disp: float) -> bool:
         """Whether the displacement has been beyond the rigid test (``rigid_test_sigmas``) for
         ``prismatic_min_motion_s`` of stamps, this frame included: a provisional start needs a
@@ -619,6 +651,7 @@ class KinematicEstimator:
             "selector": self._selector.to_state(),
             "log_scores": self._log_scores.copy(),
             "rotation_pending": self._rotation_pending,
+            "revolute_check_rad": self._revolute_check_rad,
             "prismatic_provisional": self._prismatic_provisional,
             "displaced_since_ns": self._displaced_since,
             "innovation": None if self._innovation is None else {
@@ -671,6 +704,12 @@ class KinematicEstimator:
         if not np.isfinite(est._log_scores).any():
             raise SnapshotError("estimator.log_scores: no finite score")
         est._rotation_pending = r.boolean("rotation_pending")
+        check = r.raw("revolute_check_rad")
+        est._revolute_check_rad = (math.inf if check == math.inf
+                                   else r.number("revolute_check_rad"))
+        if est._revolute_check_rad <= 0.0:
+            raise SnapshotError("estimator.revolute_check_rad: must be > 0, got "
+                                f"{est._revolute_check_rad!r}")
         est._prismatic_provisional = r.boolean("prismatic_provisional")
         est._displaced_since = r.optional_integer("displaced_since_ns", 0, INT64_MAX)
         if est._prismatic_provisional and est._prismatic is None:
