@@ -90,6 +90,14 @@ class KinematicsConfig:
     # ... once the displacement has been beyond the rigid test (rigid_test_sigmas) for this long
     # [s]: a displacement that persists, not a single noisy frame.
     prismatic_min_motion_s: float = 0.1
+    # While the hand has not moved (the rigid test passes, no joint filter started), fuse every
+    # pose into the reference pose (docs/estimation.md#reference-refinement). Off by default: it
+    # changes the contact-phase segmentation's behaviour, which has not been re-validated.
+    refine_reference_while_still: bool = False
+    # ... until the displacement or the rotation from the reference exceeds this many sigmas.
+    reference_still_sigmas: float = 2.5
+    # A still pose is fused this long after its stamp, if the hand stayed still until then [s].
+    reference_fusion_lag_s: float = 0.3
     # Each time the rotation from the reference has grown by this factor since the revolute filter
     # started (or was last checked), its axis is compared with the axis of the current delta; the
     # filter restarts from that delta when they differ by more than revolute_restart_sigmas (an
@@ -169,7 +177,7 @@ class KinematicsConfig:
             "revolute_max_joint_distance_m", "disconnected_density",
             "prismatic_min_translation_m", "revolute_min_rotation_rad", "max_prediction_dt_s",
             "outlier_gate_sigmas", "max_hand_displacement_m", "covariance_correlation_scale",
-            "revolute_restart_sigmas",
+            "revolute_restart_sigmas", "reference_still_sigmas",
         )
         non_negative = (
             "prismatic_axis_noise_rad2_per_s3", "prismatic_q_noise_m2_per_s3",
@@ -179,7 +187,7 @@ class KinematicsConfig:
             "prior_rigid", "prior_prismatic", "prior_revolute", "prior_disconnected",
             "min_still_duration_for_rigid_s", "min_motion_sigmas", "outlier_run_s",
             "prismatic_min_motion_sigmas", "prismatic_min_motion_s",
-            "rigid_test_sigmas",
+            "rigid_test_sigmas", "reference_fusion_lag_s",
         )
         for f in fields(self):
             value = getattr(self, f.name)

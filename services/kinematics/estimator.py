@@ -81,10 +81,12 @@ from services.kinematics.filters.geometry import (
     adjoint_fast,
     cross3,
     mahalanobis2_3,
+    se3_exp_fast,
     se3_inverse_fast,
     se3_log_fast,
     so3_log_fast,
 )
+from services.kinematics.filters.whiteness import InnovationCorrelation
 from services.kinematics.prediction import predict_hand_pose, predicted_pose
 from services.kinematics.selection import ModelSelector
 
@@ -259,6 +261,13 @@ class KinematicEstimator:
         self._prismatic: PrismaticJoint | None = None
         self._revolute: RevoluteJoint | None = None
         self._rotation_pending = False
+        # Whether the reference pose is final: the hand moved, or a joint filter started
+        # (docs/estimation.md#reference-refinement).
+        self._reference_fixed = False
+        self._still_whiteness = InnovationCorrelation(6)
+        # Still poses (stamp, T, Sigma) not yet fused into the reference, oldest first.
+        self._still_poses: list[tuple[int, Array, Array]] = []
+        self._beyond_since: int | None = None  # first stamp of the current run beyond the test
         # The rotation angle [rad] at which the revolute filter's axis is next checked against
         # the delta's (docs/estimation.md#filter-start).
         self._revolute_check_rad = math.inf
@@ -468,6 +477,32 @@ class KinematicEstimator:
                            d2_disp, d2_rot)
         self._log_scores = self._selector.log_scores(self._prismatic, self._revolute, position,
                                                      T0[:3, 3], (stamp - self._stamp0) * 1e-9)
+
+        # 4. Reference refinement: while the hand has not moved, this pose measures the
+        # reference pose too (docs/estimation.md#reference-refinement).
+        if not self._reference_fixed:
+            k2 = cfg.reference_still_sigmas ** 2
+            beyond = d2_disp > k2 or d2_rot > k2
+            if beyond:
+                self._still_poses.clear()  # the slow start of a motion may be among them
+                if self._beyond_since is None:
+                    self._beyond_since = stamp
+            else:
+                self._beyond_since = None
+            if (not cfg.refine_reference_while_still or self._prismatic is not None
+                    or self._revolute is not None or (
+                        self._beyond_since is not None
+                        and (stamp - self._beyond_since) * 1e-9 >= cfg.prismatic_min_motion_s)):
+                self._reference_fixed = True  # the hand moved: the displacement persists
+                self._still_poses.clear()
+            elif not beyond:
+                # A pose is fused once it is reference_fusion_lag_s old and the hand stayed still
+                # since: the start of a motion stays inside the test for a while.
+                self._still_poses.append((stamp, T, Sigma))
+                lag_ns = round(cfg.reference_fusion_lag_s * 1e9)
+                while self._still_poses and self._still_poses[0][0] <= stamp - lag_ns:
+                    _, T_still, Sigma_still = self._still_poses.pop(0)
+                    self._refine_reference(T_still @ self._T0_inv, Sigma_still)
         self._updates += 1
         self._model = self._make_model()
         return UpdateResult(model=self._model, note=note)
@@ -581,6 +616,26 @@ class KinematicEstimator:
             self._displaced_since = stamp
         return (stamp - self._displaced_since) * 1e-9 >= self.config.prismatic_min_motion_s
 
+    def _refine_reference(self, D: Array, Sigma: Array) -> None:
+        """Fuse a pose of the still hand, ``D = T T0^-1`` with covariance ``Sigma``, into the
+        reference: ``T0 <- Exp(K log D) T0``, ``Sigma0 <- (I - K) Sigma0``, ``K = Sigma0
+        (Sigma0 + Sigma + floor I)^-1`` (a Kalman update of a static pose; left perturbations in
+        ``frame``). The stamps of the reference stay (docs/estimation.md#reference-refinement)."""
+        S0 = self._Sigma0
+        y = se3_log_fast(D)
+        self._still_whiteness.add(y, S0 + Sigma + self._floor6)
+        # Successive poses' errors are correlated: fused as independent, N still frames would
+        # claim N times the information they hold. Each pose counts with its covariance
+        # inflated by the integrated autocorrelation time of the innovations so far.
+        rho = self._still_whiteness.rho
+        R = Sigma * ((1.0 + rho) / (1.0 - rho)) + self._floor6
+        K = np.linalg.solve(S0 + R, S0).T  # K = S0 (S0 + R)^-1
+        T0 = se3_exp_fast(K @ y) @ self._T0
+        S0 = (_I6 - K) @ S0
+        stamp0, last = self._stamp0, self._last_stamp
+        self._set_reference(T0, 0.5 * (S0 + S0.T), stamp0)
+        self._last_stamp = last
+
     def _set_reference(self, T: Array, Sigma: Array, stamp: int) -> None:
         self._T0 = T.copy()
         self._T0_inv = se3_inverse_fast(T)
@@ -651,6 +706,13 @@ class KinematicEstimator:
             "selector": self._selector.to_state(),
             "log_scores": self._log_scores.copy(),
             "rotation_pending": self._rotation_pending,
+            "reference_fixed": self._reference_fixed,
+            "still_whiteness": self._still_whiteness.to_state(),
+            "beyond_since_ns": self._beyond_since,
+            "still_poses": {"stamps_ns": [p[0] for p in self._still_poses],
+                            "poses": np.array([p[1] for p in self._still_poses]).reshape(-1, 4, 4),
+                            "covariances": np.array([p[2] for p in self._still_poses]
+                                                    ).reshape(-1, 6, 6)},
             "revolute_check_rad": self._revolute_check_rad,
             "prismatic_provisional": self._prismatic_provisional,
             "displaced_since_ns": self._displaced_since,
@@ -704,6 +766,18 @@ class KinematicEstimator:
         if not np.isfinite(est._log_scores).any():
             raise SnapshotError("estimator.log_scores: no finite score")
         est._rotation_pending = r.boolean("rotation_pending")
+        est._reference_fixed = r.boolean("reference_fixed")
+        est._still_whiteness = InnovationCorrelation.from_state(6, r.map("still_whiteness"))
+        est._beyond_since = r.optional_integer("beyond_since_ns", 0, INT64_MAX)
+        still = r.map("still_poses")
+        stamps = still.raw("stamps_ns")
+        if not isinstance(stamps, list) or not all(
+                isinstance(x, int) and not isinstance(x, bool) and 0 <= x <= INT64_MAX
+                for x in stamps):
+            raise SnapshotError("estimator.still_poses.stamps_ns: expected a list of stamps")
+        poses = still.array("poses", (len(stamps), 4, 4))
+        covariances = still.array("covariances", (len(stamps), 6, 6))
+        est._still_poses = [(x, poses[i], covariances[i]) for i, x in enumerate(stamps)]
         check = r.raw("revolute_check_rad")
         est._revolute_check_rad = (math.inf if check == math.inf
                                    else r.number("revolute_check_rad"))
