@@ -21,6 +21,7 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.linalg.lapack import dpotrf, dtrtrs
 
 from services.common.snapshot import SnapshotError, SnapshotReader
 
@@ -39,11 +40,12 @@ class InnovationCorrelation:
     def add(self, y: Array, S: Array) -> None:
         """Absorb one innovation ``y`` (dim,) with its covariance ``S`` (dim x dim); an ``S``
         without a Cholesky factor (never, in exact arithmetic) is skipped."""
-        try:
-            L = np.linalg.cholesky(S)
-        except np.linalg.LinAlgError:
+        L, info = dpotrf(S, lower=1, clean=1)  # S = L L' (LAPACK: no numpy overhead per frame)
+        if info:
             return
-        w = np.linalg.solve(L, y)
+        w, info = dtrtrs(L, y, lower=1)  # w = L^-1 y
+        if info:
+            return
         self.sum_squares += float(w @ w)
         if self.last is not None:
             self.sum_lag_products += float(w @ self.last)
