@@ -60,6 +60,15 @@ class KinematicsConfig:
     # Variance added to every diagonal entry of R [m^2 or rad^2].
     measurement_noise_floor: float = 1e-6
 
+    # --- Published covariance (docs/estimation.md#published-covariance) ---
+    # The published joint covariance is the filter's times covariance_correlation_scale
+    # (1 + rho) / (1 - rho), rho the lag-one autocorrelation of the filter's whitened innovations
+    # (the filter counts correlated frames as independent), at least 1 and at most
+    # max_covariance_inflation. The scale was fitted on the tuning partitions
+    # (docs/estimation.md#tuning-record).
+    covariance_correlation_scale: float = 0.5
+    max_covariance_inflation: float = 30.0
+
     # Longest prediction step [s]: a longer gap between stamps is predicted as this long. The
     # constant-velocity model is not extrapolated over a long loss of tracking (for a revolute
     # joint that would pick an arbitrary 2 pi branch of q; the process noise grows as dt^3).
@@ -81,6 +90,21 @@ class KinematicsConfig:
     # ... once the displacement has been beyond the rigid test (rigid_test_sigmas) for this long
     # [s]: a displacement that persists, not a single noisy frame.
     prismatic_min_motion_s: float = 0.1
+    # While the hand has not moved (the rigid test passes, no joint filter started), fuse every
+    # pose into the reference pose (docs/estimation.md#reference-refinement). Off by default: it
+    # changes the contact-phase segmentation's behaviour, which has not been re-validated.
+    refine_reference_while_still: bool = False
+    # ... until the displacement or the rotation from the reference exceeds this many sigmas.
+    reference_still_sigmas: float = 2.5
+    # A still pose is fused this long after its stamp, if the hand stayed still until then [s].
+    reference_fusion_lag_s: float = 0.3
+    # Each time the rotation from the reference has grown by this factor since the revolute filter
+    # started (or was last checked), its axis is compared with the axis of the current delta; the
+    # filter restarts from that delta when they differ by more than revolute_restart_sigmas (an
+    # EKF started from a noisy axis converges slowly while its covariance shrinks;
+    # docs/estimation.md#filter-start).
+    revolute_recheck_growth: float = 1.5
+    revolute_restart_sigmas: float = 4.0
 
     # --- Model selection (docs/estimation.md#model-selection) ---
     # Number of history entries sampled uniformly over the whole demonstration.
@@ -152,7 +176,8 @@ class KinematicsConfig:
             "likelihood_correlation_time_s",
             "revolute_max_joint_distance_m", "disconnected_density",
             "prismatic_min_translation_m", "revolute_min_rotation_rad", "max_prediction_dt_s",
-            "outlier_gate_sigmas", "max_hand_displacement_m",
+            "outlier_gate_sigmas", "max_hand_displacement_m", "covariance_correlation_scale",
+            "revolute_restart_sigmas", "reference_still_sigmas",
         )
         non_negative = (
             "prismatic_axis_noise_rad2_per_s3", "prismatic_q_noise_m2_per_s3",
@@ -162,7 +187,7 @@ class KinematicsConfig:
             "prior_rigid", "prior_prismatic", "prior_revolute", "prior_disconnected",
             "min_still_duration_for_rigid_s", "min_motion_sigmas", "outlier_run_s",
             "prismatic_min_motion_sigmas", "prismatic_min_motion_s",
-            "rigid_test_sigmas",
+            "rigid_test_sigmas", "reference_fusion_lag_s",
         )
         for f in fields(self):
             value = getattr(self, f.name)
@@ -174,6 +199,12 @@ class KinematicsConfig:
         for name in non_negative:
             if not getattr(self, name) >= 0.0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)!r}")
+        if not self.revolute_recheck_growth > 1.0:
+            raise ValueError("revolute_recheck_growth must be > 1, got "
+                             f"{self.revolute_recheck_growth!r}")
+        if not self.max_covariance_inflation >= 1.0:
+            raise ValueError("max_covariance_inflation must be >= 1, got "
+                             f"{self.max_covariance_inflation!r}")
         if not self.max_inflation_factor >= 1.0:
             raise ValueError(f"max_inflation_factor must be >= 1, got {self.max_inflation_factor!r}")
         if self.prior_disconnected <= 0.0:

@@ -81,16 +81,18 @@ from services.kinematics.filters.geometry import (
     adjoint_fast,
     cross3,
     mahalanobis2_3,
+    se3_exp_fast,
     se3_inverse_fast,
     se3_log_fast,
     so3_log_fast,
 )
+from services.kinematics.filters.whiteness import InnovationCorrelation
 from services.kinematics.prediction import predict_hand_pose, predicted_pose
 from services.kinematics.selection import ModelSelector
 
 Array = NDArray[np.float64]
 
-SNAPSHOT_VERSION = 3
+SNAPSHOT_VERSION = 4
 
 RejectReason = Literal["invalid_stamp", "invalid_value", "bad_shape", "non_finite",
                        "invalid_covariance", "duplicate_stamp", "out_of_order", "outlier"]
@@ -190,7 +192,7 @@ def prismatic_params(f: PrismaticJoint) -> PrismaticParams:
     G = np.array([[t00, t01, 0.0, 0.0], [t10, t11, 0.0, 0.0], [0.0, 0.0, s, 0.0],
                   [0.0, 0.0, 0.0, s]])
     cov = G @ f.P[:4, :4] @ G.T
-    cov = (cov + cov.T) * 0.5
+    cov = (cov + cov.T) * (0.5 * f.covariance_inflation())
     cov.flags.writeable = False
     return PrismaticParams(axis=axis, q=s * f.q, dq=s * f.qdot, covariance=cov)
 
@@ -205,7 +207,7 @@ def revolute_params(f: RevoluteJoint) -> RevoluteParams:
                   [0.0, 0.0, a2, c2, 0.0, 0.0], [0.0, 0.0, 0.0, 0.0, s, 0.0],
                   [0.0, 0.0, 0.0, 0.0, 0.0, s]])
     cov = G @ f.P[:6, :6] @ G.T
-    cov = (cov + cov.T) * 0.5
+    cov = (cov + cov.T) * (0.5 * f.covariance_inflation())
     cov.flags.writeable = False
     return RevoluteParams(axis=axis, point=_frozen(f.p), q=s * f.q, dq=s * f.qdot,
                           covariance=cov)
@@ -237,6 +239,7 @@ class KinematicEstimator:
         self._floor3 = self.config.measurement_noise_floor * _I3
         self._floor6 = self.config.measurement_noise_floor * _I6
         self._gate_d2 = chi2_quantile_of_sigmas(self.config.outlier_gate_sigmas, 6)
+        self._restart_d2 = chi2_quantile_of_sigmas(self.config.revolute_restart_sigmas, 2)
         self._run_ns = round(self.config.outlier_run_s * 1e9)
         self.reset()
 
@@ -258,6 +261,16 @@ class KinematicEstimator:
         self._prismatic: PrismaticJoint | None = None
         self._revolute: RevoluteJoint | None = None
         self._rotation_pending = False
+        # Whether the reference pose is final: the hand moved, or a joint filter started
+        # (docs/estimation.md#reference-refinement).
+        self._reference_fixed = False
+        self._still_whiteness = InnovationCorrelation(6)
+        # Still poses (stamp, T, Sigma) not yet fused into the reference, oldest first.
+        self._still_poses: list[tuple[int, Array, Array]] = []
+        self._beyond_since: int | None = None  # first stamp of the current run beyond the test
+        # The rotation angle [rad] at which the revolute filter's axis is next checked against
+        # the delta's (docs/estimation.md#filter-start).
+        self._revolute_check_rad = math.inf
         # The prismatic filter started below min_motion_sigmas, and the stamp since which the
         # displacement has been above prismatic_min_motion_sigmas (docs/estimation.md#filter-start).
         self._prismatic_provisional = False
@@ -439,15 +452,20 @@ class KinematicEstimator:
             self._prismatic = PrismaticJoint.from_displacement(cfg, disp, self._Sigma0_disp)
             self._prismatic_provisional = not confirmed
             self._selector.history.backfill_prismatic(self._prismatic.u)
+        angle = math.sqrt(float(w @ w))
         if self._revolute is not None:
-            f = revolute_noise_inflation(math.sqrt(float(w @ w)), cfg)
+            f = revolute_noise_inflation(angle, cfg)
             self._revolute.predict(dt)
             self._revolute.update(D, f * Sigma + self._floor6)  # R = f Sigma + floor I
+            if angle >= self._revolute_check_rad:
+                # The rotation grew: is the filter's axis still consistent with this delta's?
+                self._revolute_check_rad = angle * cfg.revolute_recheck_growth
+                if self._revolute_axis_d2(w, R_D, Sigma) > self._restart_d2:
+                    self._start_revolute(D, angle)
         else:
             significant = d2_rot >= cfg.min_motion_sigmas ** 2
-            if significant and float(w @ w) >= cfg.revolute_min_rotation_rad ** 2:
-                self._revolute = RevoluteJoint.from_twist(cfg, se3_log_fast(D), self._Sigma0)
-                self._selector.history.backfill_revolute(self._revolute.u)
+            if significant and angle >= cfg.revolute_min_rotation_rad:
+                self._start_revolute(D, angle)
             # A significant rotation below the start threshold: a revolute joint cannot be ruled
             # out before its filter runs, so no type is published meanwhile (_type_known).
             self._rotation_pending = significant and self._revolute is None
@@ -459,6 +477,32 @@ class KinematicEstimator:
                            d2_disp, d2_rot)
         self._log_scores = self._selector.log_scores(self._prismatic, self._revolute, position,
                                                      T0[:3, 3], (stamp - self._stamp0) * 1e-9)
+
+        # 4. Reference refinement: while the hand has not moved, this pose measures the
+        # reference pose too (docs/estimation.md#reference-refinement).
+        if not self._reference_fixed:
+            k2 = cfg.reference_still_sigmas ** 2
+            beyond = d2_disp > k2 or d2_rot > k2
+            if beyond:
+                self._still_poses.clear()  # the slow start of a motion may be among them
+                if self._beyond_since is None:
+                    self._beyond_since = stamp
+            else:
+                self._beyond_since = None
+            if (not cfg.refine_reference_while_still or self._prismatic is not None
+                    or self._revolute is not None or (
+                        self._beyond_since is not None
+                        and (stamp - self._beyond_since) * 1e-9 >= cfg.prismatic_min_motion_s)):
+                self._reference_fixed = True  # the hand moved: the displacement persists
+                self._still_poses.clear()
+            elif not beyond:
+                # A pose is fused once it is reference_fusion_lag_s old and the hand stayed still
+                # since: the start of a motion stays inside the test for a while.
+                self._still_poses.append((stamp, T, Sigma))
+                lag_ns = round(cfg.reference_fusion_lag_s * 1e9)
+                while self._still_poses and self._still_poses[0][0] <= stamp - lag_ns:
+                    _, T_still, Sigma_still = self._still_poses.pop(0)
+                    self._refine_reference(T_still @ self._T0_inv, Sigma_still)
         self._updates += 1
         self._model = self._make_model()
         return UpdateResult(model=self._model, note=note)
@@ -538,6 +582,29 @@ class KinematicEstimator:
         return (C_pred + Sigma + A @ self._Sigma0 @ A.T
                 + (s_q * dt * dt * dt / 3.0) * np.outer(xi, xi) + self._floor6)
 
+    def _start_revolute(self, D: Array, angle: float) -> None:
+        """Start (or restart) the revolute filter from the delta ``D``, whose rotation angle is
+        ``angle`` [rad] (docs/estimation.md#filter-start)."""
+        self._revolute = RevoluteJoint.from_twist(self.config, se3_log_fast(D), self._Sigma0)
+        self._revolute_check_rad = angle * self.config.revolute_recheck_growth
+        self._selector.history.backfill_revolute(self._revolute.u)
+
+    def _revolute_axis_d2(self, w: Array, R_D: Array, Sigma: Array) -> float:
+        """Squared Mahalanobis distance between the revolute filter's axis and the axis of the
+        current delta's rotation vector ``w`` (3,) [rad] (sign-folded onto the filter's), in the
+        filter's tangent basis ``B``: the tangent coordinates ``b = B' w / |w|`` against
+        ``P_b + B' Sigma_w B / |w|^2``, ``Sigma_w`` the rotation-vector covariance of the rigid
+        test (the current pose's plus the reference's, rotated with the delta;
+        docs/estimation.md#filter-start)."""
+        f = self._revolute
+        assert f is not None
+        n2 = float(w @ w)
+        a = w if float(w @ f.u) >= 0.0 else -w
+        Sigma_w = Sigma[3:, 3:] + R_D @ self._Sigma0[3:, 3:] @ R_D.T + self._floor3
+        b = f.B.T @ a / math.sqrt(n2)
+        C = f.P[:2, :2] + (f.B.T @ Sigma_w @ f.B) / n2
+        return _mahalanobis2(b, C)
+
     def _displacement_persists(self, stamp: int, d2_disp: float) -> bool:
         """Whether the displacement has been beyond the rigid test (``rigid_test_sigmas``) for
         ``prismatic_min_motion_s`` of stamps, this frame included: a provisional start needs a
@@ -548,6 +615,26 @@ class KinematicEstimator:
         if self._displaced_since is None:
             self._displaced_since = stamp
         return (stamp - self._displaced_since) * 1e-9 >= self.config.prismatic_min_motion_s
+
+    def _refine_reference(self, D: Array, Sigma: Array) -> None:
+        """Fuse a pose of the still hand, ``D = T T0^-1`` with covariance ``Sigma``, into the
+        reference: ``T0 <- Exp(K log D) T0``, ``Sigma0 <- (I - K) Sigma0``, ``K = Sigma0
+        (Sigma0 + Sigma + floor I)^-1`` (a Kalman update of a static pose; left perturbations in
+        ``frame``). The stamps of the reference stay (docs/estimation.md#reference-refinement)."""
+        S0 = self._Sigma0
+        y = se3_log_fast(D)
+        self._still_whiteness.add(y, S0 + Sigma + self._floor6)
+        # Successive poses' errors are correlated: fused as independent, N still frames would
+        # claim N times the information they hold. Each pose counts with its covariance
+        # inflated by the integrated autocorrelation time of the innovations so far.
+        rho = self._still_whiteness.rho
+        R = Sigma * ((1.0 + rho) / (1.0 - rho)) + self._floor6
+        K = np.linalg.solve(S0 + R, S0).T  # K = S0 (S0 + R)^-1
+        T0 = se3_exp_fast(K @ y) @ self._T0
+        S0 = (_I6 - K) @ S0
+        stamp0, last = self._stamp0, self._last_stamp
+        self._set_reference(T0, 0.5 * (S0 + S0.T), stamp0)
+        self._last_stamp = last
 
     def _set_reference(self, T: Array, Sigma: Array, stamp: int) -> None:
         self._T0 = T.copy()
@@ -619,6 +706,14 @@ class KinematicEstimator:
             "selector": self._selector.to_state(),
             "log_scores": self._log_scores.copy(),
             "rotation_pending": self._rotation_pending,
+            "reference_fixed": self._reference_fixed,
+            "still_whiteness": self._still_whiteness.to_state(),
+            "beyond_since_ns": self._beyond_since,
+            "still_poses": {"stamps_ns": [p[0] for p in self._still_poses],
+                            "poses": np.array([p[1] for p in self._still_poses]).reshape(-1, 4, 4),
+                            "covariances": np.array([p[2] for p in self._still_poses]
+                                                    ).reshape(-1, 6, 6)},
+            "revolute_check_rad": self._revolute_check_rad,
             "prismatic_provisional": self._prismatic_provisional,
             "displaced_since_ns": self._displaced_since,
             "innovation": None if self._innovation is None else {
@@ -671,6 +766,24 @@ class KinematicEstimator:
         if not np.isfinite(est._log_scores).any():
             raise SnapshotError("estimator.log_scores: no finite score")
         est._rotation_pending = r.boolean("rotation_pending")
+        est._reference_fixed = r.boolean("reference_fixed")
+        est._still_whiteness = InnovationCorrelation.from_state(6, r.map("still_whiteness"))
+        est._beyond_since = r.optional_integer("beyond_since_ns", 0, INT64_MAX)
+        still = r.map("still_poses")
+        stamps = still.raw("stamps_ns")
+        if not isinstance(stamps, list) or not all(
+                isinstance(x, int) and not isinstance(x, bool) and 0 <= x <= INT64_MAX
+                for x in stamps):
+            raise SnapshotError("estimator.still_poses.stamps_ns: expected a list of stamps")
+        poses = still.array("poses", (len(stamps), 4, 4))
+        covariances = still.array("covariances", (len(stamps), 6, 6))
+        est._still_poses = [(x, poses[i], covariances[i]) for i, x in enumerate(stamps)]
+        check = r.raw("revolute_check_rad")
+        est._revolute_check_rad = (math.inf if check == math.inf
+                                   else r.number("revolute_check_rad"))
+        if est._revolute_check_rad <= 0.0:
+            raise SnapshotError("estimator.revolute_check_rad: must be > 0, got "
+                                f"{est._revolute_check_rad!r}")
         est._prismatic_provisional = r.boolean("prismatic_provisional")
         est._displaced_since = r.optional_integer("displaced_since_ns", 0, INT64_MAX)
         if est._prismatic_provisional and est._prismatic is None:

@@ -473,3 +473,47 @@ def test_mahalanobis2_3_matches_a_linear_solve() -> None:
         v = rng.normal(size=3)
         assert mahalanobis2_3(v, S) == pytest.approx(float(v @ np.linalg.solve(S, v)), rel=1e-9)
     assert mahalanobis2_3(np.ones(3), np.diag([1.0, 0.0, 1.0])) == math.inf  # not definite
+
+
+def test_innovation_whiteness_and_the_covariance_inflation() -> None:
+    """White innovations give rho ~ 0 and no inflation; AR(1) innovations with correlation 0.8
+    give rho ~ 0.8 and the factor scale (1 + rho) / (1 - rho); a snapshot keeps the sums."""
+    from services.common.snapshot import SnapshotReader
+    from services.kinematics.filters.whiteness import InnovationCorrelation
+
+    rng = np.random.default_rng(33)
+    L = np.array([[2.0, 0.0, 0.0], [0.5, 1.0, 0.0], [0.1, -0.3, 0.5]])
+    S = L @ L.T
+    white, ar1 = InnovationCorrelation(3), InnovationCorrelation(3)
+    x = rng.normal(size=3)
+    for _ in range(4000):
+        white.add(L @ rng.normal(size=3), S)
+        x = 0.8 * x + math.sqrt(1.0 - 0.64) * rng.normal(size=3)
+        ar1.add(L @ x, S)
+    assert abs(white.rho) < 0.05
+    assert white.inflation(0.5, 30.0) == 1.0  # never below the filter's own covariance
+    assert ar1.rho == pytest.approx(0.8, abs=0.03)
+    expected = 0.5 * (1.0 + ar1.rho) / (1.0 - ar1.rho)
+    assert ar1.inflation(0.5, 30.0) == pytest.approx(expected)
+    assert ar1.inflation(0.5, 3.0) == 3.0  # capped
+    back = InnovationCorrelation.from_state(3, SnapshotReader(ar1.to_state(), "w"))
+    assert (back.rho, back.inflation(0.5, 30.0)) == (ar1.rho, ar1.inflation(0.5, 30.0))
+
+
+def test_the_published_covariance_is_the_filters_times_its_inflation() -> None:
+    from services.kinematics.estimator import prismatic_params, revolute_params
+
+    rng = np.random.default_rng(34)
+    f = _revolute(rng, POLES[1], 4.0)
+    z = f.measurement()
+    for _ in range(30):  # a constant error, absorbed slowly: correlated innovations
+        f.predict(0.03)
+        f.update(se3.se3_exp(np.full(6, 0.02)) @ z, 1e-2 * np.eye(6))
+    inflation = f.covariance_inflation()
+    assert f.whiteness.rho > 0.5 and inflation > 1.0
+    bare = revolute_params(f).covariance / inflation
+    assert np.linalg.eigvalsh(bare[2:5, 2:5]).max() == pytest.approx(
+        np.linalg.eigvalsh(f.parameter_covariance()[2:5, 2:5]).max(), rel=1e-9)
+    p = _prismatic(rng, unit(rng.normal(size=3)))
+    assert np.trace(prismatic_params(p).covariance[:2, :2]) == pytest.approx(
+        p.covariance_inflation() * np.trace(p.P[:2, :2]), rel=1e-9)

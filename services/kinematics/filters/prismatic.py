@@ -19,6 +19,7 @@ from services.kinematics.filters.geometry import (
     rotate_axis,
     tangent_basis,
 )
+from services.kinematics.filters.whiteness import InnovationCorrelation
 
 Array = NDArray[np.float64]
 
@@ -69,6 +70,11 @@ class PrismaticJoint:
         self.y: Array = np.zeros(3)
         self.S: Array = np.eye(3)
         self.K: Array = np.zeros((7, 3))
+        # Innovation whiteness and the published covariance's inflation from it
+        # (docs/estimation.md#published-covariance).
+        self.whiteness = InnovationCorrelation(3)
+        self._inflation_scale = config.covariance_correlation_scale
+        self._inflation_cap = config.max_covariance_inflation
 
     @classmethod
     def from_displacement(cls, config: KinematicsConfig, z: Array,
@@ -128,6 +134,7 @@ class PrismaticJoint:
         y = z - self.measurement()  # y = z - h(x-)
         dx, self.P, self.S, self.K = ekf_correct(self.P, H, R, y)
         self.y = y
+        self.whiteness.add(y, self.S)
         self.inject(dx)
 
     def inject(self, dx: Array) -> None:
@@ -136,6 +143,13 @@ class PrismaticJoint:
         self.q += float(dx[2])
         self.qdot += float(dx[3])
         self.o = self.o + dx[4:]
+
+    def covariance_inflation(self) -> float:
+        """Variance factor of the published covariance: ``covariance_correlation_scale (1 + rho)
+        / (1 - rho)`` for the lag-one autocorrelation ``rho`` of this filter's whitened
+        innovations, in ``[1, max_covariance_inflation]``
+        (docs/estimation.md#published-covariance)."""
+        return self.whiteness.inflation(self._inflation_scale, self._inflation_cap)
 
     def log_likelihood(self) -> float:
         """``log N(y; 0, S)`` of the last innovation."""
@@ -193,7 +207,8 @@ class PrismaticJoint:
         """The complete filter state (arrays copied) for snapshots."""
         return {"axis": self.u.copy(), "basis": self.B.copy(), "q": self.q, "qdot": self.qdot,
                 "offset": self.o.copy(), "P": self.P.copy(), "y": self.y.copy(),
-                "S": self.S.copy(), "K": self.K.copy()}
+                "S": self.S.copy(), "K": self.K.copy(),
+                "innovation_correlation": self.whiteness.to_state()}
 
     @classmethod
     def from_state(cls, config: KinematicsConfig,
@@ -208,4 +223,5 @@ class PrismaticJoint:
         f.y = r.array("y", (3,))
         f.S = r.covariance("S", 3)
         f.K = r.array("K", (7, 3))
+        f.whiteness = InnovationCorrelation.from_state(3, r.map("innovation_correlation"))
         return f

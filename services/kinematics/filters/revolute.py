@@ -26,6 +26,7 @@ from services.kinematics.filters.geometry import (
     se3_log_fast,
     tangent_basis,
 )
+from services.kinematics.filters.whiteness import InnovationCorrelation
 
 Array = NDArray[np.float64]
 
@@ -93,6 +94,11 @@ class RevoluteJoint:
         self.y: Array = np.zeros(6)
         self.S: Array = np.eye(6)
         self.K: Array = np.zeros((12, 6))
+        # Innovation whiteness and the published covariance's inflation from it
+        # (docs/estimation.md#published-covariance).
+        self.whiteness = InnovationCorrelation(6)
+        self._inflation_scale = config.covariance_correlation_scale
+        self._inflation_cap = config.max_covariance_inflation
 
     @classmethod
     def from_twist(cls, config: KinematicsConfig, z: Array,
@@ -162,6 +168,7 @@ class RevoluteJoint:
         y = se3_log_fast(z @ se3_inverse_fast(Ex @ self.E))  # y = log(z (Exp(h) E)^-1)
         dx, self.P, self.S, self.K = ekf_correct(self.P, H, R, y)
         self.y = y
+        self.whiteness.add(y, self.S)
         self.inject(dx)
 
     def inject(self, dx: Array) -> None:
@@ -175,6 +182,13 @@ class RevoluteJoint:
         self.q += float(dx[_Q])
         self.qdot += float(dx[_QDOT])
         self.E = se3_exp_fast(dx[_REF]) @ self.E
+
+    def covariance_inflation(self) -> float:
+        """Variance factor of the published covariance: ``covariance_correlation_scale (1 + rho)
+        / (1 - rho)`` for the lag-one autocorrelation ``rho`` of this filter's whitened
+        innovations, in ``[1, max_covariance_inflation]``
+        (docs/estimation.md#published-covariance)."""
+        return self.whiteness.inflation(self._inflation_scale, self._inflation_cap)
 
     def log_likelihood(self) -> float:
         """``log N(y; 0, S)`` of the last innovation."""
@@ -242,7 +256,8 @@ class RevoluteJoint:
         """The complete filter state (arrays copied) for snapshots."""
         return {"axis": self.u.copy(), "basis": self.B.copy(), "point": self.p.copy(),
                 "q": self.q, "qdot": self.qdot, "reference_correction": self.E.copy(),
-                "P": self.P.copy(), "y": self.y.copy(), "S": self.S.copy(), "K": self.K.copy()}
+                "P": self.P.copy(), "y": self.y.copy(), "S": self.S.copy(), "K": self.K.copy(),
+                "innovation_correlation": self.whiteness.to_state()}
 
     @classmethod
     def from_state(cls, config: KinematicsConfig,
@@ -260,4 +275,5 @@ class RevoluteJoint:
         f.y = r.array("y", (6,))
         f.S = r.covariance("S", 6)
         f.K = r.array("K", (12, 6))
+        f.whiteness = InnovationCorrelation.from_state(6, r.map("innovation_correlation"))
         return f
