@@ -33,7 +33,14 @@ def main(args: argparse.Namespace) -> int:
     from services.common.progress import Progress
     from services.evaluation.figures import describe_data
     from services.evaluation.report import write_report
-    from services.evaluation.runner import METHODS, Settings, resolve_split, run_tasks, tasks
+    from services.evaluation.runner import (
+        METHODS,
+        OPTIONAL_METHODS,
+        Settings,
+        resolve_split,
+        run_tasks,
+        tasks,
+    )
 
     settings = Settings(tracker=section_from_args(args, "tracker"),
                         kinematics=section_from_args(args, "kinematics"))
@@ -44,8 +51,9 @@ def main(args: argparse.Namespace) -> int:
     try:
         task_list = tasks(args.split, args.partition, args.seeds, variants, conditions, free)
         for m in methods:
-            if m not in METHODS:
-                raise ValueError(f"unknown method {m!r}; choose from {', '.join(METHODS)}")
+            if m not in (*METHODS, *OPTIONAL_METHODS):
+                raise ValueError(f"unknown method {m!r}; choose from "
+                                 f"{', '.join((*METHODS, *OPTIONAL_METHODS))}")
     except ValueError as exc:
         raise UserError(str(exc)) from None
     if not [t for t in task_list if t.split != "free"]:

@@ -22,7 +22,7 @@ import numpy as np
 
 from services.evaluation import metrics
 from services.evaluation.figures import object_order
-from services.evaluation.phase_metrics import summarise_phases
+from services.evaluation.phase_metrics import PhaseScore, summarise_phases
 from services.evaluation.runner import (
     ARTICULATED,
     LABELS,
@@ -234,11 +234,19 @@ def _phase_table(evaluation: Evaluation, group: Group) -> list[str]:
              "| phases found | extra phases per min of free motion |",
              "| --- | ---: | ---: | ---: | ---: |"]
     for m in (m for m in LABELS if any(p.method == m for p in rows)):
-        s = summarise_phases([p.score for p in rows if p.method == m])
-        lines.append(f"| {LABELS[m]} | {_fmt(s.onset_median_ms, 0)} / {_fmt(s.onset_p90_ms, 0)} "
-                     f"| {_fmt(s.release_median_ms, 0)} / {_fmt(s.release_p90_ms, 0)} | "
-                     f"{s.found}/{s.true} | {_fmt(s.extra_per_minute_free, 2)} |")
-    return lines
+        mine = [p for p in rows if p.method == m]
+        scored = [("online", [p.score for p in mine])]
+        if all(p.dated is not None for p in mine):
+            scored.append(("kept, dated", [p.dated for p in mine]))  # type: ignore[misc]
+        for how, scores in scored:
+            s = summarise_phases(scores)
+            lines.append(f"| {LABELS[m]} ({how}) | {_fmt(s.onset_median_ms, 0)} / "
+                         f"{_fmt(s.onset_p90_ms, 0)} | {_fmt(s.release_median_ms, 0)} / "
+                         f"{_fmt(s.release_p90_ms, 0)} | {s.found}/{s.true} | "
+                         f"{_fmt(s.extra_per_minute_free, 2)} |")
+    return ["Online: the phase decided at each frame's own time (a tentative phase dropped later "
+            "counts); kept, dated: the phases kept, dated back by at most the stated lag "
+            "(docs/estimation.md#contact-phases).", "", *lines]
 
 
 def _paired_means(rows: Sequence[Row], method: str, a: Group, b: Group) -> tuple[float, float,
@@ -272,12 +280,21 @@ def _comparison(rows: Sequence[Row], methods: Sequence[str],
     return lines
 
 
+def _per_minute(scores: Sequence[PhaseScore | None]) -> str:
+    """Extra (false) phases per minute of stream, or "-" without segmentation."""
+    scored = [s for s in scores if s is not None]
+    if not scored:
+        return "-"
+    return f"{sum(s.extra for s in scored) / (sum(s.duration_s for s in scored) / 60):.2f}"
+
+
 def _free_table(free: Sequence[FreeRow]) -> list[str]:
     if not free:
         return []
     lines = ["| Free hand stream | streams | minutes | frames with an articulated verdict > 0.5 "
-             "| streams with one | final types | false contact phases per minute |",
-             "| --- | ---: | ---: | ---: | ---: | --- | ---: |"]
+             "| streams with one | final types | false contact phases per minute (online / kept) "
+             "| kept phases with an articulated verdict > 0.5 |",
+             "| --- | ---: | ---: | ---: | ---: | --- | ---: | ---: |"]
     for m in (m for m in LABELS if any(f.method == m for f in free)):
         mine = [f for f in free if f.method == m]
         minutes = sum(f.duration_s for f in mine) / 60.0
@@ -285,12 +302,11 @@ def _free_table(free: Sequence[FreeRow]) -> list[str]:
         art = sum(f.articulated_frames for f in mine)
         finals = ", ".join(f"{t} {sum(f.final_type == t for f in mine)}"
                            for t in sorted({f.final_type for f in mine}))
-        scored = [f.phases for f in mine if f.phases is not None]
-        false = (f"{sum(s.extra for s in scored) / (sum(s.duration_s for s in scored) / 60):.2f}"
-                 if scored else "- (no segmentation)")
+        false = " / ".join(_per_minute([getattr(f, attr) for f in mine])
+                           for attr in ("phases", "dated"))
         lines.append(f"| {LABELS[m]} | {len(mine)} | {minutes:.1f} | {art}/{frames} | "
                      f"{sum(f.articulated_frames > 0 for f in mine)}/{len(mine)} | {finals} | "
-                     f"{false} |")
+                     f"{false} | {sum(f.articulated_phases for f in mine)} |")
     return lines
 
 
@@ -370,10 +386,12 @@ def _free_csv(free: Sequence[FreeRow], path: Path) -> None:
     with open(path, "w", newline="") as f:
         w = csv.writer(f)
         w.writerow(["participant", "seed", "method", "frames", "articulated_frames",
-                    "final_type", "duration_s", "contact_phases"])
+                    "final_type", "duration_s", "contact_phases", "kept_phases",
+                    "articulated_phases"])
         for r in free:
             w.writerow([r.participant, r.seed, r.method, r.frames, r.articulated_frames,
-                        r.final_type, r.duration_s, "" if r.phases is None else r.phases.extra])
+                        r.final_type, r.duration_s, "" if r.phases is None else r.phases.extra,
+                        "" if r.dated is None else r.dated.extra, r.articulated_phases])
 
 
 def write_report(rows: Sequence[Row] | Evaluation, methods: Sequence[str], out_dir: Path,

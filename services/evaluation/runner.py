@@ -182,7 +182,10 @@ class SegmentRow:
 
 @dataclass(frozen=True)
 class PhaseRow:
-    """The pipeline's contact phases on one demonstration against the true ones."""
+    """The pipeline's contact phases on one demonstration against the true ones: ``score`` the
+    phase decided online at each frame's own time (tentative phases that were later dropped
+    included), ``dated`` the phases as finally kept, dated back by at most the segmentation's
+    ``max_lag_s`` (``PipelineResult.segment_models``; None without them)."""
 
     object: str
     participant: int
@@ -192,6 +195,7 @@ class PhaseRow:
     condition: str
     method: str
     score: PhaseScore
+    dated: PhaseScore | None = None
 
 
 @dataclass(frozen=True)
@@ -199,8 +203,10 @@ class FreeRow:
     """One of our methods on a free hand stream (no contact at all).
 
     ``articulated_frames``: frames after which the published model is prismatic or revolute
-    with probability > 0.5; ``phases``: the pipeline's contact phases scored against none
-    (None without segmentation).
+    with probability > 0.5; ``phases``: the pipeline's contact phases, decided online at each
+    frame, scored against none (None without segmentation); ``dated``: the phases it kept;
+    ``articulated_phases``: kept phases whose verdict is prismatic or revolute with probability
+    > 0.5 (what ``get`` could answer a robot).
     """
 
     participant: int
@@ -211,6 +217,8 @@ class FreeRow:
     final_type: str
     duration_s: float
     phases: PhaseScore | None
+    dated: PhaseScore | None = None
+    articulated_phases: int = 0
 
 
 @dataclass
@@ -364,7 +372,7 @@ def _ours(demo: Demonstration, label: _Label, method: str, settings: Settings) -
     phases = getattr(result, "phases", None)
     if phases is not None:
         out.phases = [PhaseRow(method=method, score=score_demo_phases(demo, phases),
-                               **label.ids())]
+                               dated=score_kept_phases(demo, result), **label.ids())]
     return out
 
 
@@ -373,6 +381,23 @@ def score_demo_phases(demo: Demonstration, phases: Any) -> PhaseScore:
     its true contact phases (:func:`~services.evaluation.phase_metrics.score_phases`)."""
     truth = [(s.onset_ns, s.release_ns) for s in demo.truth.segments]
     return phase_metrics.score_phases(demo.stamps_ns, phase_metrics.as_contact(phases), truth)
+
+
+def score_kept_phases(demo: Demonstration, result: Any) -> PhaseScore | None:
+    """The contact phases the pipeline kept (``segment_models``: from ``segment_start_ns`` to
+    ``segment_end_ns``, an open one to the last frame) against ``demo``'s true ones; None for a
+    pipeline without them."""
+    models: Sequence[KinematicModel] | None = getattr(result, "segment_models", None)
+    if models is None:
+        return None
+    stamps = np.asarray(demo.stamps_ns, dtype=np.int64)
+    contact = np.zeros(len(stamps), dtype=bool)
+    for m in models:
+        start = int(m.segment_start_ns)  # type: ignore[arg-type]
+        end = int(m.segment_end_ns) if m.segment_end_ns is not None else int(stamps[-1])
+        contact |= (stamps >= start) & (stamps <= end)
+    truth = [(s.onset_ns, s.release_ns) for s in demo.truth.segments]
+    return phase_metrics.score_phases(stamps, contact, truth)
 
 
 def _segment_rows(demo: Demonstration, label: _Label, method: str, result: Any
@@ -443,11 +468,15 @@ def _free(task: Task, settings: Settings, methods: Sequence[str]) -> DemoResult:
         phases = getattr(result, "phases", None)
         stamps = np.asarray(result.stamps_ns)
         score = None if phases is None else score_demo_phases(demo, phases)
+        kept = getattr(result, "segment_models", None) or ()
         out.free.append(FreeRow(participant=demo.participant, seed=demo.seed, method=method,
                                 frames=len(stamps), articulated_frames=int(articulated),
                                 final_type=result.final.type,
                                 duration_s=float(stamps[-1] - stamps[0]) * 1e-9,
-                                phases=score))
+                                phases=score, dated=score_kept_phases(demo, result),
+                                articulated_phases=sum(
+                                    m.type in ARTICULATED
+                                    and m.probabilities.get(m.type, 0.0) > 0.5 for m in kept)))
     return out
 
 
@@ -533,8 +562,8 @@ def run_tasks(task_list: Sequence[Task], settings: Settings | None = None,
     settings = settings or Settings(TrackerConfig(), KinematicsConfig())
     methods = tuple(methods)
     for m in methods:
-        if m not in METHODS:
-            raise ValueError(f"unknown method {m!r}; known: {list(METHODS)}")
+        if m not in (*METHODS, *OPTIONAL_METHODS):
+            raise ValueError(f"unknown method {m!r}; known: {[*METHODS, *OPTIONAL_METHODS]}")
     if progress is not None:
         progress.total = len(task_list)
     results: list[DemoResult | None] = [None] * len(task_list)

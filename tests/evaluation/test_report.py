@@ -116,17 +116,26 @@ def test_segments_phases_and_the_free_stream() -> None:
                                         (1, "door", "revolute", "disconnected", 90.0))]
     phases = [PhaseRow(**ids, method="ours", score=PhaseScore(
         onset_errors_ms=(100.0, -50.0), release_errors_ms=(30.0, 60.0), missed=0, extra=1,
+        duration_s=8.0, free_s=3.0), dated=PhaseScore(
+        onset_errors_ms=(10.0, -20.0), release_errors_ms=(5.0, 41.0), missed=0, extra=0,
         duration_s=8.0, free_s=3.0))]
     free = [FreeRow(participant=6, seed=0, method="ours", frames=1800, articulated_frames=12,
-                    final_type="disconnected", duration_s=60.0, phases=None)]
+                    final_type="disconnected", duration_s=60.0, phases=None),
+            FreeRow(participant=7, seed=0, method="ours", frames=1800, articulated_frames=0,
+                    final_type="rigid", duration_s=60.0,
+                    phases=PhaseScore((), (), 0, 3, 60.0, 60.0),
+                    dated=PhaseScore((), (), 0, 1, 60.0, 60.0), articulated_phases=1)]
     rows = [_row("cabinet_door", "revolute", "ours", "disconnected", 90.0, variant="sequence")]
     text = report_markdown(Evaluation(rows=rows, segments=segments, phases=phases, free=free),
                            ("ours",), "test")
     assert "the model held at each contact phase's last frame" in text
     assert "| 1 | 4.0 deg, 1/1 types |" in text and "| 2 | 90.0 deg, 0/1 types |" in text
     assert "| every phase's type right | 0/1 |" in text
-    assert "| Ours | 75 / 95 | 45 / 57 | 2/2 | 20.00 |" in text
-    assert "| Ours | 1 | 1.0 | 12/1800 | 1/1 | disconnected 1 | - (no segmentation) |" in text
+    assert "| Ours (online) | 75 / 95 | 45 / 57 | 2/2 | 20.00 |" in text
+    assert "| Ours (kept, dated) | 15 / 19 | 23 / 37 | 2/2 | 0.00 |" in text
+    # the stream without segmentation counts in neither rate; one kept articulated phase
+    assert ("| Ours | 2 | 2.0 | 12/3600 | 1/2 | disconnected 1, rigid 1 | 3.00 / 1.00 | 1 |"
+            in text)
 
 
 def test_file_names_say_what_the_run_covered(tmp_path: Path) -> None:
