@@ -28,13 +28,15 @@ import threading
 import time
 from pathlib import Path
 
+import numpy as np
+
 from services.common.bus import Bus, BusError, ZenohOptions, wait_for_services
 from services.common.errors import UserError
 from services.common.keys import Keys
 from services.common.playback import PlaybackOptions, play
 from services.common.processes import ProcessGroup, client_args, free_tcp_endpoint
 from services.common.protocol import HandLandmarks, KinematicModel, KinematicModelList
-from services.evaluation.metrics import JointEstimate
+from services.evaluation.metrics import JointEstimate, axis_angle_error
 from services.evaluation.pipeline import demo_tangent_error_deg, joint_estimate
 from services.synthetic.generator import Demonstration, generate
 from services.synthetic.replay import demonstration_recording
@@ -65,7 +67,23 @@ def print_comparison(model: KinematicModel, demo: Demonstration) -> float:
         print(f"{'point (m)':14}{fmt(est.point):<34}{fmt(truth.point):<34}")
     print(f"{'updates':14}{model.updates:<34d}")
     print(f"\ntangent error {err:.1f} deg (frame: {model.frame_id})")
+    if est.type in ("prismatic", "revolute") and truth.type in ("prismatic", "revolute"):
+        # the tangent error mixes direction and position; a robot engineer wants both
+        detail = f"axis direction {math.degrees(axis_angle_error(truth, est)):.1f} deg off"
+        if est.type == truth.type == "revolute":
+            grasp = np.asarray(demo.truth.grasp_points[0], float)  # where the hand grasps
+            offset = _foot(est, grasp) - _foot(truth, grasp)
+            detail += (f"; at the grasp the axis is {np.linalg.norm(offset) * 1e3:.0f} mm off, "
+                       f"{np.linalg.norm(grasp - _foot(truth, grasp)) * 1e3:.0f} mm from the "
+                       "grasp (a small radius turns millimetres into degrees of tangent)")
+        print(detail)
     return err
+
+
+def _foot(joint: JointEstimate, x: np.ndarray) -> np.ndarray:
+    """The point of ``joint``'s axis line nearest ``x`` (camera frame, m)."""
+    a, p = np.asarray(joint.axis, float), np.asarray(joint.point, float)
+    return p + float((x - p) @ a) * a
 
 
 class PhasePrinter:

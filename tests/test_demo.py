@@ -23,6 +23,8 @@ def test_demo_runs_end_to_end_and_prints_the_right_model(procs: Processes) -> No
     match = re.search(r"tangent error ([0-9.]+) deg \(frame", out)
     assert match is not None, out
     assert float(match.group(1)) <= SLIDER_TANGENT_ERROR_BOUND_DEG, out
+    direction = re.search(r"^axis direction ([0-9.]+) deg off$", out, re.MULTILINE)
+    assert direction is not None and float(direction.group(1)) <= float(match.group(1)) + 0.1, out
     assert re.search(r"updates\s+[1-9]\d*", out), out  # the model absorbed hand-body updates
     # the default is the whole demonstration: its one contact phase is printed as detected,
     # then beside the true contact interval
