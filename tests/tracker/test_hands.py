@@ -326,3 +326,23 @@ def test_a_broken_filter_covariance_is_repaired_counted_and_never_published() ->
     result = tracker.step(stamp, [hg.observe(T_A, rng, NOISE_M)])
     assert result.estimate is None and result.reason == "bad_covariance"
     assert tracker._ekf is None  # dropped: a new body is initialised from the next frames
+
+
+@pytest.mark.parametrize(("obj", "participant", "seed"), [("kitchen_drawer", 5, 3),
+                                                          ("cabinet_door", 5, 3)])
+def test_a_household_joint_survives_a_second_long_regrasp_gap(obj: str, participant: int,
+                                                               seed: int) -> None:
+    """The hand lets go, is out of sight for more than a second and grasps the handle again
+    (the generator's ``gap="regrasp"``; tuning participant): through the tracker and the
+    kinematics estimator the final joint is still the right type, and about as good as without
+    the gap (measured: drawer 0.6 vs 0.7 deg, door 2.1 vs 2.0 deg)."""
+    demo = generate(obj, participant, seed, gap="regrasp")
+    undetected = [len(demo.detections(i)) == 0 for i in range(len(demo.stamps_ns))]
+    first = undetected.index(True)
+    last = len(undetected) - 1 - undetected[::-1].index(True)
+    assert 1.0 <= (demo.stamps_ns[last + 1] - demo.stamps_ns[first]) * 1e-9 <= 1.5
+    final = run_pipeline(demo).final
+    assert final.type == demo.truth.joint.type
+    plain = generate(obj, participant, seed)
+    assert demo_tangent_error_deg(final, demo) < demo_tangent_error_deg(
+        run_pipeline(plain).final, plain) + 5.0
