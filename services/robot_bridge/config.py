@@ -66,6 +66,12 @@ class RobotBridgeConfig:
     check_joint_path: bool = True         # IK along the planned path (needs mujoco, else skipped)
     joint_limit_margin_rad: float = 0.0   # ... every joint at least this far inside its range
 
+    # --- Closed loop (docs/robot_bridge.md#closed-loop) ---
+    # Refine a revolute model from the robot's own grasp motion while articulating, re-plan and
+    # comply where the model is unsure. Simulation (mujoco) only in this version: on a real
+    # robot the bridge warns and runs open loop (the refinement runs in the control tick).
+    closed_loop: bool = False
+
     # --- Controller (Jacobian-transpose Cartesian impedance) ---
     translational_stiffness_n_per_m: float = 1000.0
     rotational_stiffness_nm_per_rad: float = 50.0

@@ -72,7 +72,7 @@ from services.robot_bridge.backend import BackendState, RobotBackend
 from services.robot_bridge.config import RobotBridgeConfig, config_from_args
 from services.robot_bridge.executor import Bridge
 from services.robot_bridge.factory import configured_backend
-from services.robot_bridge.refinement import robot_body
+from services.robot_bridge.refinement import RefinementConfig, robot_body
 from services.robot_bridge.safety import Refusal, check_cached_model, choose_segment
 from services.robot_bridge.trajectory import ArticulationPlan
 
@@ -112,7 +112,7 @@ class RobotBridgeNode:
         self.service = service
         self.backend = backend
         self.config = config
-        self.bridge = Bridge(backend, config)
+        self.bridge = Bridge(backend, config, RefinementConfig() if config.closed_loop else None)
         self.fetch_model = fetch_model
         self.fetch_models = fetch_models
         self.clock = clock
@@ -477,6 +477,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     ``robot_bridge.sim_object``); the CLI adds rig/config/zenoh itself."""
     parser.add_argument("--backend", choices=("mujoco", "panda"),
                         help="robot backend (default: robot_bridge.backend, mujoco)")
+    parser.add_argument("--closed-loop", action="store_true",
+                        help="refine a revolute model from the robot's own motion while "
+                             "articulating (robot_bridge.closed_loop; simulation only)")
     parser.add_argument("--sim-object", metavar="SOURCE",
                         help="simulated object: key, window_lock or bolt at the nominal grasp; "
                              "synthetic:OBJECT[:PARTICIPANT[:SEED[:VARIANT]]], the true object of that "
@@ -493,6 +496,8 @@ def main(args: argparse.Namespace) -> int:
             config = replace(config, backend=args.backend)
         if getattr(args, "sim_object", None):
             config = replace(config, sim_object=args.sim_object)
+        if getattr(args, "closed_loop", False):
+            config = replace(config, closed_loop=True)
     except ValueError as exc:
         raise UserError(f"--sim-object: {exc}") from None
     if getattr(args, "sim_object", None) and config.backend != "mujoco":

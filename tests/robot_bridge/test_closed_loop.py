@@ -204,3 +204,26 @@ def test_closed_loop_stays_in_simulation() -> None:
     plan = ArticulationPlan(JointInBase("revolute", T0[:3, 2].copy(), T0[:3, 3].copy()), T0,
                             math.pi, 6.0)
     assert Bridge(backend, config, rf.RefinementConfig())._refiner(plan, model) is None
+
+
+def test_the_service_runs_closed_loop_only_when_configured() -> None:
+    """``robot_bridge.closed_loop`` (``handkse robot-bridge --closed-loop``) hands the service's
+    bridge a refinement config; without it the service articulates open loop."""
+    import argparse
+
+    from services.common.service import Service
+    from services.robot_bridge.config import RobotBridgeConfig
+    from services.robot_bridge.factory import make_backend
+    from services.robot_bridge.service import RobotBridgeNode, add_arguments
+    from tests.common.fake_bus import FakeBus
+    from tests.robot_bridge.test_stale_model import KEYS
+
+    for closed, expected in ((False, type(None)), (True, rf.RefinementConfig)):
+        config = RobotBridgeConfig(closed_loop=closed)
+        node = RobotBridgeNode(Service("robot_bridge", FakeBus(), KEYS), make_backend(config),
+                               config)
+        assert isinstance(node.bridge.refinement, expected)
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    assert parser.parse_args(["--closed-loop"]).closed_loop is True
+    assert parser.parse_args([]).closed_loop is False

@@ -11,14 +11,13 @@ import math
 import threading
 import time
 from collections.abc import Callable, Iterator
-from concurrent.futures import Future
 
 import numpy as np
 import pytest
 
 pytest.importorskip("mujoco")
 
-from services.common.bus import NoResponder, QueryAnswer, QueryRequest, QueryTimeout
+from services.common.bus import NoResponder, QueryTimeout
 from services.common.keys import Keys
 from services.common.protocol import (
     ArticulateRequest,
@@ -32,46 +31,10 @@ from services.robot_bridge.factory import make_backend
 from services.robot_bridge.mujoco_backend import nominal_grasp_pose
 from services.robot_bridge.safety import check_cached_model
 from services.robot_bridge.service import RobotBridgeNode
+from tests.common.fake_bus import Declaration, FakeBus
 
 KEYS = Keys("unit")
 DRY = ArticulateRequest(amount=math.pi / 4, duration_s=2.0, dry_run=True)
-
-
-class MemoryBus:
-    """Records puts; hands subscriptions, queryables and liveliness watches to the test."""
-
-    def __init__(self) -> None:
-        self.subscribers: dict[str, list[Callable[[str, bytes], None]]] = {}
-        self.queryables: dict[str, Callable[[QueryRequest],
-                                            QueryAnswer | Future[QueryAnswer]]] = {}
-        self.watchers: dict[str, list[Callable[[str, bool], None]]] = {}
-        self.puts = 0
-
-    def put(self, key: str, payload: bytes, *, frame: bool = False,
-            encoding: str = "application/msgpack") -> None:
-        self.puts += 1
-
-    def subscribe(self, key: str, callback: Callable[[str, bytes], None]) -> None:
-        self.subscribers.setdefault(key, []).append(callback)
-
-    def declare_queryable(self, key: str,
-                          handler: Callable[[QueryRequest], QueryAnswer | Future[QueryAnswer]]
-                          ) -> None:
-        self.queryables[key] = handler
-
-    def declare_token(self, key: str) -> None:
-        pass
-
-    def watch_liveliness(self, key_expr: str, callback: Callable[[str, bool], None]) -> None:
-        self.watchers.setdefault(key_expr, []).append(callback)
-
-    def deliver(self, key: str, payload: bytes) -> None:
-        for cb in self.subscribers.get(key, []):
-            cb(key, payload)
-
-    def liveliness(self, key: str, alive: bool) -> None:
-        for cb in self.watchers.get(key, []):
-            cb(key, alive)
 
 
 class FakeClock:
@@ -86,7 +49,9 @@ class Rig:
     """A node on a :class:`MemoryBus`; ``serve`` scripts what the kinematics ``get`` does."""
 
     def __init__(self, config: RobotBridgeConfig) -> None:
-        self.bus = MemoryBus()
+        self.bus = FakeBus()                      # the node's session
+        self.peer = FakeBus(self.bus.network)     # kinematics and the caller, on the same network
+        self._tokens: dict[str, Declaration] = {}
         self.clock = FakeClock()
         self.service = Service("robot_bridge", self.bus, KEYS)
         self.serve: Callable[[], KinematicModel | None] = self._unreachable
@@ -117,7 +82,7 @@ class Rig:
     def publish_model(self, model: KinematicModel) -> None:
         """A model arriving on the kinematics model key (the subscription path)."""
         before = self.node._latest
-        self.bus.deliver(KEYS.kinematics_model, model.to_msgpack())
+        self.peer.put(KEYS.kinematics_model, model.to_msgpack())
         # Control calls overtake queued samples, so no call_soon marker can wait for it.
         deadline = time.monotonic() + 5.0
         while self.node._latest is before:
@@ -126,11 +91,15 @@ class Rig:
 
     def articulate(self, request: ArticulateRequest = DRY) -> ArticulateResult:
         """Ask as the bus would; an accepted request is answered later (a deferred answer)."""
-        handler = self.bus.queryables[KEYS.robot_articulate]
-        answer = handler(QueryRequest(KEYS.robot_articulate, {}, request.to_msgpack()))
-        if isinstance(answer, Future):
-            answer = answer.result(timeout=30.0)
-        return ArticulateResult.from_msgpack(answer.payload)
+        [(_, payload)] = self.peer.get(KEYS.robot_articulate, request.to_msgpack(), timeout=30.0)
+        return ArticulateResult.from_msgpack(payload)
+
+    def liveliness(self, key: str, alive: bool) -> None:
+        """Kinematics' liveliness token appears (``alive``) or goes."""
+        if alive and key not in self._tokens:
+            self._tokens[key] = self.peer.declare_token(key)
+        elif not alive and key in self._tokens:
+            self._tokens.pop(key).undeclare()
 
     def close(self) -> None:
         self.stop.set()
@@ -196,17 +165,16 @@ def test_old_published_model_is_stale_when_kinematics_unreachable(
 def test_liveliness_loss_is_reported_in_the_refusal(rig: Rig,
                                                     caplog: pytest.LogCaptureFixture) -> None:
     alive_key = KEYS.alive("kinematics")
-    assert alive_key in rig.bus.watchers  # the node watches the kinematics token
-    rig.bus.liveliness(alive_key, True)
+    rig.liveliness(alive_key, True)
     rig.publish_model(_key_model())
     rig.clock.t += 0.5
-    rig.bus.liveliness(alive_key, False)
+    rig.liveliness(alive_key, False)
     rig.clock.t += 4.0
     with caplog.at_level(logging.WARNING, logger="services.robot_bridge.service"):
         assert rig.articulate().reason == "stale_model"
     assert "liveliness token is gone since 4.0 s" in caplog.text
     # back: the service answers again and its current model is used
-    rig.bus.liveliness(alive_key, True)
+    rig.liveliness(alive_key, True)
     rig.serve = _key_model
     assert rig.articulate().reason == "dry_run"
 
