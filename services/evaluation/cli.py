@@ -6,13 +6,11 @@ from __future__ import annotations
 
 import argparse
 import os
-import shutil
 import time
 from pathlib import Path
 
 from services.common.config import section_from_args
 
-LATEST = Path(__file__).resolve().parents[2] / "bench" / "results" / "eval"
 # The choices of the command line, spelled out so that building the parser imports no
 # estimation code (tests/evaluation/test_eval.py checks them against the runner and splits).
 SPLIT_CHOICES = ("paper", "household", "all", "evaluation", "tuning")
@@ -32,6 +30,7 @@ def main(args: argparse.Namespace) -> int:
     from services.common.errors import UserError
     from services.common.progress import Progress
     from services.evaluation.figures import describe_data
+    from services.evaluation.publish import RESULTS, publish
     from services.evaluation.report import write_report
     from services.evaluation.runner import (
         METHODS,
@@ -73,10 +72,7 @@ def main(args: argparse.Namespace) -> int:
     print(written[0].read_text())
     print(f"written {out}/" + ", ".join(p.name for p in written))
     if args.publish:
-        LATEST.mkdir(parents=True, exist_ok=True)
-        for path in written:
-            shutil.copy(path, LATEST / path.name)
-        print(f"copied to {LATEST}")
+        publish(written, RESULTS / "eval")
     return 0
 
 

@@ -22,7 +22,6 @@ import argparse
 import csv
 import math
 import os
-import shutil
 import time
 from collections.abc import Sequence
 from concurrent.futures import ProcessPoolExecutor, as_completed
@@ -34,12 +33,13 @@ from numpy.typing import NDArray
 
 from services.common.progress import Progress
 from services.common.protocol import KinematicModel, PrismaticParams, RevoluteParams
+from services.evaluation.publish import RESULTS, publish
 from services.evaluation.robot_trial_rows import LABELS, METHODS, OBJECTS, PARTICIPANT, TrialRow
 from services.robot_bridge.config import RobotBridgeConfig, config_from_args
 
 Array = NDArray[np.float64]
 
-LATEST = Path(__file__).resolve().parents[2] / "bench" / "results" / "robot_trials"
+LATEST = RESULTS / "robot_trials"
 # robot_perturbations.CASES spelled out, so that building the parser imports no simulation code
 # (tests/evaluation/test_robot_perturbations.py checks they agree).
 DEFAULT_CASES_TEXT = "5:0,10:0,20:0,0:5,0:10,0:20,10:10"
@@ -270,12 +270,7 @@ def main(args: argparse.Namespace) -> int:
     print((out / "table.md").read_text().split("\n\nFailures")[0])
     print(f"written {out}/" + ", ".join(REPORT_FILES))
     if args.publish:
-        latest = LATEST / loop if loop else LATEST
-        latest.mkdir(parents=True, exist_ok=True)
-        for name in REPORT_FILES:
-            if (out / name).exists():
-                shutil.copy(out / name, latest / name)
-        print(f"copied to {latest}")
+        publish([out / name for name in REPORT_FILES], LATEST / loop if loop else LATEST)
     return 0
 
 
@@ -308,10 +303,7 @@ def perturbed_main(args: argparse.Namespace, config: RobotBridgeConfig) -> int:
     print(written[0].read_text())
     print(f"written {out}/" + ", ".join(p.name for p in written))
     if args.publish:
-        LATEST.mkdir(parents=True, exist_ok=True)
-        for path in written:
-            shutil.copy(path, LATEST / path.name)
-        print(f"copied to {LATEST}")
+        publish(written, LATEST)
     return 0
 
 

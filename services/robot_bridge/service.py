@@ -400,44 +400,34 @@ def _refusal(refusal: Refusal) -> ArticulateResult:
                             detail=refusal.detail)
 
 
+def _ask_kinematics(bus: QueryBus, keys: Keys, key: str, timeout_s: float,
+                    reject: Callable[[str, str], None]) -> bytes:
+    """The kinematics service's answer on ``key``; replies from any other session are set aside
+    and reported to ``reject(reason, detail)`` (``Service.reject``: counted and logged)."""
+    try:
+        answer = ask_service(bus, keys, "kinematics", key, timeout=timeout_s)
+    except UntrustedReply as exc:
+        _report(exc.untrusted, reject)
+        if isinstance(exc, AmbiguousReply):
+            reject("ambiguous_reply", str(exc))
+        raise
+    _report(answer.untrusted, reject)
+    return answer.reply.payload
+
+
 def kinematics_model_fetcher(bus: QueryBus, keys: Keys, timeout_s: float,
                              reject: Callable[[str, str], None]) -> ModelFetcher:
-    """Ask the kinematics service for its model; replies from any other session are set aside
-    and reported to ``reject(reason, detail)`` (``Service.reject``: counted and logged)."""
-
-    def fetch() -> KinematicModel | None:
-        try:
-            answer = ask_service(bus, keys, "kinematics", keys.kinematics_model,
-                                 timeout=timeout_s)
-        except UntrustedReply as exc:
-            _report(exc.untrusted, reject)
-            if isinstance(exc, AmbiguousReply):
-                reject("ambiguous_reply", str(exc))
-            raise
-        _report(answer.untrusted, reject)
-        return KinematicModel.from_msgpack(answer.reply.payload)
-
-    return fetch
+    """Ask the kinematics service for its model (only its own session's reply is used)."""
+    return lambda: KinematicModel.from_msgpack(
+        _ask_kinematics(bus, keys, keys.kinematics_model, timeout_s, reject))
 
 
 def kinematics_models_fetcher(bus: QueryBus, keys: Keys, timeout_s: float,
                               reject: Callable[[str, str], None]) -> ModelListFetcher:
-    """Ask the kinematics service for every contact phase's model (``KinematicModelList``);
-    replies from any other session are set aside, as for :func:`kinematics_model_fetcher`."""
-
-    def fetch() -> tuple[KinematicModel, ...]:
-        try:
-            answer = ask_service(bus, keys, "kinematics", keys.kinematics_models,
-                                 timeout=timeout_s)
-        except UntrustedReply as exc:
-            _report(exc.untrusted, reject)
-            if isinstance(exc, AmbiguousReply):
-                reject("ambiguous_reply", str(exc))
-            raise
-        _report(answer.untrusted, reject)
-        return KinematicModelList.from_msgpack(answer.reply.payload).models
-
-    return fetch
+    """Ask the kinematics service for every contact phase's model (``KinematicModelList``;
+    only its own session's reply is used)."""
+    return lambda: KinematicModelList.from_msgpack(
+        _ask_kinematics(bus, keys, keys.kinematics_models, timeout_s, reject)).models
 
 
 def _report(untrusted: tuple[Reply, ...], reject: Callable[[str, str], None]) -> None:
