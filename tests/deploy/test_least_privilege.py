@@ -203,6 +203,23 @@ def test_only_the_tracker_publishes_hand_bodies(deploy: Callable[[bool], Deploym
     assert (b"viewer body" in bodies) == (not policy)
 
 
+@POLICY
+def test_only_the_robot_publishes_its_grasp_pose_and_kinematics_hears_it(
+        deploy: Callable[[bool], Deployment], policy: bool) -> None:
+    """``robot/body`` (fused by ``kinematics --fuse-robot-body``) reaches kinematics under the
+    policy, from the robot identity only."""
+    d = deploy(policy)
+    kinematics, robot, tracker = d.client("kinematics"), d.client("robot"), d.client("tracker")
+    received: list[bytes] = []
+    kinematics.subscribe(KEYS.robot_body, lambda k, p: received.append(p))
+    wait_until(lambda: _delivered(robot, KEYS.robot_body, received), 10,
+               what="the robot's grasp pose reaching kinematics")
+    tracker.put(KEYS.robot_body, b"forged grasp")
+    robot.put(KEYS.robot_body, b"last real grasp")
+    wait_until(lambda: b"last real grasp" in received, 10, what="the robot's last grasp pose")
+    assert (b"forged grasp" in received) == (not policy)
+
+
 def _delivered(sender: Bus, key: str, received: list[bytes]) -> bool:
     sender.put(key, b"probe")
     time.sleep(0.05)
