@@ -150,7 +150,8 @@ def test_view_saves_landmarks_body_and_model_as_published(procs: Processes, rout
 
 def _yellow_pixels(png: Path) -> tuple[int, float]:
     """Landmark-coloured (yellow) pixels in the 3-D scene's part of the screenshot, and the
-    standard deviation of that part's grey levels."""
+    standard deviation of the whole screenshot's grey levels (the loading page is one colour;
+    the 3-D scene alone may be a smooth gradient of a few grey levels, so it cannot tell)."""
     from PIL import Image
 
     image = np.asarray(Image.open(png).convert("RGB")).astype(int)
@@ -158,7 +159,7 @@ def _yellow_pixels(png: Path) -> tuple[int, float]:
     region = image[int(0.08 * h):int(0.6 * h), : int(0.55 * w)]
     r, g, b = region[..., 0], region[..., 1], region[..., 2]
     yellow = (r > 150) & (g > 120) & (b < 110) & (r - b > 90)
-    return int(yellow.sum()), float(region.mean(axis=2).std())
+    return int(yellow.sum()), float(image.mean(axis=2).std())
 
 
 @pytest.mark.skipif(not available(), reason="headless Chromium not installed (/usr/bin/chromium, "
@@ -181,9 +182,10 @@ def test_web_viewer_shows_the_landmarks(procs: Processes, router: str, tmp_path:
     try:
         browser.open(url)
         before = tmp_path / "view-before-data.png"
-        # Loading and compiling the viewer on the software rasterizer takes 10-30 s on an idle
-        # 2-core machine; it ran past 180 s twice with eight other jobs on those two cores.
-        deadline = time.monotonic() + 300
+        # Loading and compiling the viewer on the software rasterizer takes 10-30 s on a 2-core
+        # machine. (Its two failures came from judging "drawn" by the 3-D scene alone, a
+        # gradient when the view's layout arrived before the first screenshot.)
+        deadline = time.monotonic() + 180
         while True:  # until the viewer's interface is drawn (the loading page is uniform)
             time.sleep(3)
             yellow_before, spread = _yellow_pixels(browser.screenshot(before))
@@ -205,7 +207,7 @@ def test_web_viewer_shows_the_landmarks(procs: Processes, router: str, tmp_path:
     print(f"web viewer screenshot: {after} (before the data: {before})")
     assert yellow_before < 50, f"landmark colours before any data? see {before}"
     assert yellow > 300, f"no landmarks drawn ({yellow} yellow pixels); see {after}"
-    assert spread > 8.0, f"the 3-D view looks blank; see {after}"
+    assert spread > 8.0, f"the viewer looks blank; see {after}"
 
 
 def test_view_of_a_recording_logs_every_message_at_its_stamp(procs: Processes,
