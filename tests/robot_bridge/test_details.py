@@ -138,7 +138,7 @@ def _busy(rig: Rig) -> ArticulateResult:
         return _model()
 
     rig.serve = blocked
-    handler = rig.bus.queryables[KEYS.robot_articulate]
+    handler = rig.handler(KEYS.robot_articulate)
     dry = replace(HALF_TURN, dry_run=True)
     first = handler(QueryRequest(KEYS.robot_articulate, {}, dry.to_msgpack()))
     assert asked.wait(10.0)

@@ -35,7 +35,7 @@ def rig() -> Iterator[Rig]:
 
 def _ask(rig: Rig, request: ArticulateRequest) -> QueryAnswer | Future[QueryAnswer]:
     """The articulate handler's own answer: a ``QueryAnswer`` now, or a future."""
-    handler = rig.bus.queryables[KEYS.robot_articulate]
+    handler = rig.handler(KEYS.robot_articulate)
     return handler(QueryRequest(KEYS.robot_articulate, {}, request.to_msgpack()))
 
 

@@ -11,13 +11,14 @@ import math
 import threading
 import time
 from collections.abc import Callable, Iterator
+from concurrent.futures import Future
 
 import numpy as np
 import pytest
 
 pytest.importorskip("mujoco")
 
-from services.common.bus import NoResponder, QueryTimeout
+from services.common.bus import NoResponder, QueryAnswer, QueryRequest, QueryTimeout
 from services.common.keys import Keys
 from services.common.protocol import (
     ArticulateRequest,
@@ -93,6 +94,11 @@ class Rig:
         """Ask as the bus would; an accepted request is answered later (a deferred answer)."""
         [(_, payload)] = self.peer.get(KEYS.robot_articulate, request.to_msgpack(), timeout=30.0)
         return ArticulateResult.from_msgpack(payload)
+
+    def handler(self, key: str) -> Callable[[QueryRequest], QueryAnswer | Future[QueryAnswer]]:
+        """The node's own queryable on ``key`` (to see whether it answers now or later)."""
+        [declaration] = self.bus.network.queryables(key)
+        return declaration.target  # type: ignore[no-any-return]
 
     def liveliness(self, key: str, alive: bool) -> None:
         """Kinematics' liveliness token appears (``alive``) or goes."""
