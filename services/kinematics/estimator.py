@@ -60,9 +60,7 @@ from numpy.typing import NDArray
 from services.common.protocol import (
     FRAME_IDS,
     KinematicModel,
-    PrismaticParams,
     ProtocolError,
-    RevoluteParams,
 )
 from services.common.snapshot import SnapshotError, SnapshotReader
 from services.common.stamps import INT64_MAX
@@ -75,7 +73,6 @@ from services.kinematics.filters import (
     RigidJoint,
     prismatic_noise_inflation,
     revolute_noise_inflation,
-    tangent_basis,
 )
 from services.kinematics.filters.geometry import (
     adjoint_fast,
@@ -88,6 +85,7 @@ from services.kinematics.filters.geometry import (
 )
 from services.kinematics.filters.whiteness import InnovationCorrelation
 from services.kinematics.prediction import predict_hand_pose, predicted_pose
+from services.kinematics.published import prismatic_params, revolute_params
 from services.kinematics.selection import ModelSelector
 
 Array = NDArray[np.float64]
@@ -152,65 +150,6 @@ def chi2_quantile_of_sigmas(sigmas: float, dof: int) -> float:
         mid = 0.5 * (lo + hi)
         lo, hi = (mid, hi) if log_sf(mid) > log_p else (lo, mid)
     return 0.5 * (lo + hi)
-
-
-def canonical_axis_sign(u: Array) -> float:
-    """+1 or -1 so that ``sign * u`` has its largest-magnitude component positive.
-
-    Components within 1e-6 of the largest magnitude count as tied and the lowest index wins, so
-    rounding cannot flip axes such as (0, 1, -1)/sqrt(2) between runs.
-    """
-    mags = [abs(c) for c in u.tolist()]
-    top = max(mags)
-    big = next(c for c, m in zip(u.tolist(), mags, strict=True) if m >= top - 1e-6)
-    return 1.0 if big >= 0.0 else -1.0
-
-
-def _frozen(a: Array) -> Array:
-    a = np.array(a, dtype=float)
-    a.flags.writeable = False
-    return a
-
-
-def _axis_output(u: Array, B: Array) -> tuple[float, Array, list[list[float]]]:
-    """``(s, axis, T)``: the output sign, the published axis ``s u`` and the 2x2 map ``T`` of the
-    axis tangent coordinates from the filter's basis ``B`` to ``tangent_basis(axis)``
-    (:func:`~services.kinematics.filters.axis_basis_change`)."""
-    s = canonical_axis_sign(u)
-    axis = u * s
-    axis.flags.writeable = False
-    (e0, f0), (e1, f1), (e2, f2) = tangent_basis(axis).tolist()
-    (a0, c0), (a1, c1), (a2, c2) = B.tolist()
-    T = [[s * (e0 * a0 + e1 * a1 + e2 * a2), s * (e0 * c0 + e1 * c1 + e2 * c2)],
-         [s * (f0 * a0 + f1 * a1 + f2 * a2), s * (f0 * c0 + f1 * c1 + f2 * c2)]]
-    return s, axis, T
-
-
-def prismatic_params(f: PrismaticJoint) -> PrismaticParams:
-    """Canonicalised published parameters of a prismatic filter (see the module docstring)."""
-    s, axis, ((t00, t01), (t10, t11)) = _axis_output(f.u, f.B)
-    G = np.array([[t00, t01, 0.0, 0.0], [t10, t11, 0.0, 0.0], [0.0, 0.0, s, 0.0],
-                  [0.0, 0.0, 0.0, s]])
-    cov = G @ f.P[:4, :4] @ G.T
-    cov = (cov + cov.T) * (0.5 * f.covariance_inflation())
-    cov.flags.writeable = False
-    return PrismaticParams(axis=axis, q=s * f.q, dq=s * f.qdot, covariance=cov)
-
-
-def revolute_params(f: RevoluteJoint) -> RevoluteParams:
-    """Canonicalised published parameters of a revolute filter (see the module docstring)."""
-    s, axis, ((t00, t01), (t10, t11)) = _axis_output(f.u, f.B)
-    (a0, c0), (a1, c1), (a2, c2) = f.B.tolist()
-    # (b, c, q, qdot) -> (b_out, p = p_hat + B c, s q, s qdot)
-    G = np.array([[t00, t01, 0.0, 0.0, 0.0, 0.0], [t10, t11, 0.0, 0.0, 0.0, 0.0],
-                  [0.0, 0.0, a0, c0, 0.0, 0.0], [0.0, 0.0, a1, c1, 0.0, 0.0],
-                  [0.0, 0.0, a2, c2, 0.0, 0.0], [0.0, 0.0, 0.0, 0.0, s, 0.0],
-                  [0.0, 0.0, 0.0, 0.0, 0.0, s]])
-    cov = G @ f.P[:6, :6] @ G.T
-    cov = (cov + cov.T) * (0.5 * f.covariance_inflation())
-    cov.flags.writeable = False
-    return RevoluteParams(axis=axis, point=_frozen(f.p), q=s * f.q, dq=s * f.qdot,
-                          covariance=cov)
 
 
 def translation_jacobian(position: Array) -> Array:
@@ -808,9 +747,6 @@ __all__ = [
     "KinematicEstimator",
     "RejectReason",
     "UpdateResult",
-    "canonical_axis_sign",
     "chi2_quantile_of_sigmas",
-    "prismatic_params",
-    "revolute_params",
     "translation_jacobian",
 ]

@@ -20,10 +20,10 @@ from services.kinematics.estimator import (
     KinematicEstimator,
     RejectReason,
     UpdateResult,
-    canonical_axis_sign,
     chi2_quantile_of_sigmas,
 )
 from services.kinematics.filters import revolute_delta
+from services.kinematics.published import canonical_axis_sign
 from tests.common.documents import with_field
 from tests.kinematics import (
     Joint,

@@ -501,7 +501,7 @@ def test_innovation_whiteness_and_the_covariance_inflation() -> None:
 
 
 def test_the_published_covariance_is_the_filters_times_its_inflation() -> None:
-    from services.kinematics.estimator import prismatic_params, revolute_params
+    from services.kinematics.published import prismatic_params, revolute_params
 
     rng = np.random.default_rng(34)
     f = _revolute(rng, POLES[1], 4.0)
