@@ -157,13 +157,9 @@ class History:
 
 
 @dataclass(frozen=True)
-class SegmentRow:
-    """One contact phase of a demonstration with several (sequence, re-grasp), one method.
-
-    ``source``: "segment" (the pipeline's model of that phase) or "at_release" (the model held
-    at the phase's last frame, without segmentation). ``tangent_error_deg`` against the phase's
-    own joint over its own rows.
-    """
+class DemoIds:
+    """Which demonstration and method a per-phase row is about (:meth:`_Label.ids` plus the
+    method)."""
 
     object: str
     participant: int
@@ -172,6 +168,17 @@ class SegmentRow:
     variant: str
     condition: str
     method: str
+
+
+@dataclass(frozen=True)
+class SegmentRow(DemoIds):
+    """One contact phase of a demonstration with several (sequence, re-grasp), one method.
+
+    ``source``: "segment" (the pipeline's model of that phase) or "at_release" (the model held
+    at the phase's last frame, without segmentation). ``tangent_error_deg`` against the phase's
+    own joint over its own rows.
+    """
+
     segment: int
     joint: str
     type_true: str
@@ -181,19 +188,12 @@ class SegmentRow:
 
 
 @dataclass(frozen=True)
-class PhaseRow:
+class PhaseRow(DemoIds):
     """The pipeline's contact phases on one demonstration against the true ones: ``score`` the
     phase decided online at each frame's own time (tentative phases that were later dropped
     included), ``dated`` the phases as finally kept, dated back by at most the segmentation's
     ``max_lag_s`` (``PipelineResult.segment_models``; None without them)."""
 
-    object: str
-    participant: int
-    seed: int
-    split: str
-    variant: str
-    condition: str
-    method: str
     score: PhaseScore
     dated: PhaseScore | None = None
 
